@@ -1,0 +1,339 @@
+"""Configuration of a TerraShift scene: geometry, wave agents, spheres, timing, reward.
+
+Every length is in metres, every time in seconds, every mass in kilograms. Wave-agent
+quantities live in *cell units* (one cell is the spacing of the column grid), as the wave is
+defined on the grid. The defaults are the paper's pretraining run (``pretrain``); ``finetune``
+is the 30 x 30 grid with 16 agents.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+COLUMN_SHAPES = ("ellipsoid", "box", "smooth")
+"""Column shapes: ellipsoids (the paper's), boxes (classic pins), a smooth interpolated surface."""
+
+
+@dataclass
+class TerraShiftConfig:
+    """All parameters of a TerraShift scene.
+
+    The field docstrings give the unit and the allowed range; :meth:`validate` enforces the
+    ranges and raises :class:`ValueError` naming the field. Usable as a Hydra structured config.
+
+    Example:
+        >>> cfg = TerraShiftConfig.preset("finetune")
+        >>> cfg.grid_size, cfg.num_agents, cfg.num_objects
+        (30, 16, 4)
+        >>> TerraShiftConfig(grid_size=1)
+        Traceback (most recent call last):
+        ...
+        ValueError: grid_size must be an integer >= 2, got 1
+    """
+
+    # --- geometry -------------------------------------------------------------------------
+    grid_size: int = 15
+    """Columns per side of the square grid, G [count], >= 2."""
+    platform_size: float = 1.0
+    """Side of the square platform centred at the origin [m], > 0."""
+    column_shape: str = "ellipsoid"
+    """Collision and ray shape of a column: one of ``ellipsoid``, ``box``, ``smooth``."""
+    column_aspect: float = 2.0
+    """Vertical extent of an ellipsoid column over its diameter (one cell) [ratio], > 0."""
+    column_rest_top: float = 0.12
+    """Height of a column's top above the platform when its wave height is zero [m], > 0."""
+    max_column_height: float = 0.06
+    """Wave heights are clipped to [-max_column_height, max_column_height] [m], > 0."""
+    wrap_edges: bool = True
+    """Wrap wavelets around the grid edges (a torus); False clamps positions at the edges."""
+
+    # --- wave agents ----------------------------------------------------------------------
+    num_agents: int = 8
+    """Wave agents K (one Gaussian wavelet each) [count], >= 1."""
+    wave_step: float = 0.1
+    """Integration step of the wavelet parameters per physics tick [dimensionless], > 0."""
+    velocity_gain: float = 1.0
+    """Wavelet velocity change per unit action per wave step [cells / wave step], > 0."""
+    angular_velocity_gain: float = 0.78
+    """Wavelet angular velocity change per unit action per wave step [rad / wave step], > 0."""
+    amplitude_gain: float = 0.03
+    """Wavelet amplitude change per unit action per wave step [m], > 0."""
+    sigma_gain: float = 0.5
+    """Wavelet width change per unit action per wave step [cells], > 0."""
+    max_velocity: float = 1.0
+    """Wavelet speed limit per axis [cells / wave step], > 0."""
+    max_angular_velocity: float = 0.785
+    """Wavelet angular speed limit [rad / wave step], > 0."""
+    max_amplitude: float = 0.06
+    """Wavelet amplitude limit, A in [-max_amplitude, max_amplitude] [m], > 0."""
+    sigma_min: float = 0.2
+    """Smallest wavelet width [cells], > 0."""
+    sigma_max: float = 2.0
+    """Largest wavelet width [cells], >= sigma_min."""
+
+    # --- spheres --------------------------------------------------------------------------
+    num_objects: int = 4
+    """Spheres M per environment [count], >= 1."""
+    num_goals: int = 4
+    """Goals per environment; object j is assigned goal j mod num_goals [count], >= 1."""
+    sphere_radius: float = 0.075
+    """Sphere radius [m], > 0."""
+    sphere_mass: float = 0.18
+    """Sphere mass [kg], > 0."""
+    friction: float = 0.7
+    """Coulomb friction coefficient of every contact [dimensionless], >= 0."""
+    restitution: float = 0.3
+    """Coefficient of restitution of every contact [dimensionless], in (0, 1]."""
+    linear_damping: float = 0.01
+    """Linear velocity damping [1/s], >= 0."""
+    angular_damping: float = 0.0
+    """Angular velocity damping [1/s], >= 0."""
+    contact_stiffness: float = 2.0e3
+    """Normal stiffness of the penalty contact [N/m], > 0."""
+    gravity: float = 9.81
+    """Gravitational acceleration, pointing along -z [m/s^2], >= 0."""
+
+    # --- timing ---------------------------------------------------------------------------
+    physics_hz: float = 60.0
+    """Physics tick rate [Hz], > 0."""
+    substeps: int = 8
+    """Integration substeps per physics tick [count], >= 1."""
+    action_repeat: int = 2
+    """Physics ticks per decision; the reward is summed over them [count], >= 1."""
+    max_episode_steps: int = 512
+    """Decisions per episode before ``truncated`` [count], >= 1."""
+
+    # --- goals, events, spawning ----------------------------------------------------------
+    goal_radius: float = 0.10
+    """Success when the sphere centre is within this 3-D distance of its goal [m], > 0."""
+    out_of_bounds_xy: float = 0.49
+    """Out of bounds when |x| or |y| exceeds this [m], > 0."""
+    out_of_bounds_z: float = 0.40
+    """Out of bounds when z exceeds this height above the platform (or drops below 0) [m], > 0."""
+    respawn: bool = True
+    """Training mode: respawn resolved objects after ``respawn_delay``. False is evaluation
+    mode: no respawn, and the episode terminates once every object is resolved."""
+    respawn_delay: float = 0.2
+    """Delay between an object's goal/out-of-bounds event and its respawn; also the stagger
+    between object spawns after a reset [s], >= 0."""
+    spawn_margin: int = 2
+    """Objects and goals spawn at least this many cells from the grid edges [cells], >= 0."""
+    spawn_drop_height: float = 0.01
+    """Gap between a spawned sphere's bottom and the highest column top [m], >= 0."""
+    spawn_tries: int = 30
+    """Random cells tried per spawn before waiting for the next tick [count], >= 1."""
+
+    # --- reward (per physics tick, summed over the action repeat) --------------------------
+    distance_scale: float = 100.0
+    """Reward per metre of distance-to-goal improvement [1/m], >= 0."""
+    distance_clip: float = 1.0
+    """Distance improvement per tick is clipped to [-distance_clip, distance_clip] [m], > 0."""
+    goal_reward: float = 10.0
+    """Reward when an object reaches its goal [reward]."""
+    out_of_bounds_penalty: float = -2.5
+    """Reward when an object goes out of bounds [reward]."""
+    time_penalty: float = -1.0e-4
+    """Reward added every tick [reward]."""
+    slow_speed: float = 0.1
+    """Active spheres slower than this incur ``slow_penalty`` [m/s], >= 0."""
+    slow_penalty: float = -0.01
+    """Reward per slow active sphere per tick [reward]."""
+    potential_scale: float = 0.0
+    """Scale of potential-based shaping, Phi = -distance [1/m]; 0 turns it off."""
+    potential_gamma: float = 0.95
+    """Discount used by the potential-based shaping term, in [0, 1]."""
+    alignment_scale: float = 0.0
+    """Scale of the velocity-alignment (cosine) term [reward]; 0 turns it off."""
+    reward_normalizer: float = 4.0
+    """The team reward per tick is (time penalty + sum over objects) / reward_normalizer, > 0."""
+
+    # --- observations ---------------------------------------------------------------------
+    heightmap_resolution: int = 32
+    """Rays per side of the heightmap lattice spanning the platform edges [count], >= 2."""
+    heightmap_max_height: float = 0.40
+    """Ray heights are clipped to [0, heightmap_max_height] and mapped to [-1, 1] [m], > 0."""
+    max_object_speed: float = 1.0
+    """Sphere velocity components are clipped to +-this, then divided by it [m/s], > 0."""
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    # --- derived quantities ---------------------------------------------------------------
+    @property
+    def cell_size(self) -> float:
+        """Spacing of the column grid [m]."""
+        return self.platform_size / self.grid_size
+
+    @property
+    def tick_dt(self) -> float:
+        """Duration of one physics tick [s]."""
+        return 1.0 / self.physics_hz
+
+    @property
+    def substep_dt(self) -> float:
+        """Duration of one integration substep [s]."""
+        return self.tick_dt / self.substeps
+
+    @property
+    def respawn_ticks(self) -> int:
+        """Respawn delay in whole physics ticks."""
+        return round(self.respawn_delay * self.physics_hz)
+
+    @property
+    def decision_dt(self) -> float:
+        """Simulated time per decision [s]."""
+        return self.tick_dt * self.action_repeat
+
+    # --- presets --------------------------------------------------------------------------
+    @classmethod
+    def preset(cls, name: str, **overrides: Any) -> TerraShiftConfig:
+        """Returns a named preset (``pretrain`` or ``finetune``) with ``overrides`` applied."""
+        presets = {
+            "pretrain": {},
+            "finetune": {"grid_size": 30, "num_agents": 16, "num_objects": 4, "time_penalty": 0.0},
+        }
+        if name not in presets:
+            raise ValueError(f"unknown preset {name!r}; choose one of {sorted(presets)}")
+        return cls(**{**presets[name], **overrides})
+
+    def replace(self, **overrides: Any) -> TerraShiftConfig:
+        """Returns a copy with ``overrides`` applied; unknown names raise ``ValueError``."""
+        names = {f.name for f in dataclasses.fields(self)}
+        unknown = sorted(set(overrides) - names)
+        if unknown:
+            raise ValueError(f"unknown TerraShiftConfig field(s) {unknown}")
+        return dataclasses.replace(self, **overrides)
+
+    # --- validation -----------------------------------------------------------------------
+    def validate(self) -> None:
+        """Raises ``ValueError`` naming the first field outside its allowed range."""
+        for name in ("grid_size", "heightmap_resolution"):
+            _check_int(self, name, minimum=2)
+        for name in (
+            "num_agents",
+            "num_objects",
+            "num_goals",
+            "substeps",
+            "action_repeat",
+            "max_episode_steps",
+            "spawn_tries",
+        ):
+            _check_int(self, name, minimum=1)
+        _check_int(self, "spawn_margin", minimum=0)
+        for name in (
+            "platform_size",
+            "column_aspect",
+            "column_rest_top",
+            "max_column_height",
+            "wave_step",
+            "velocity_gain",
+            "angular_velocity_gain",
+            "amplitude_gain",
+            "sigma_gain",
+            "max_velocity",
+            "max_angular_velocity",
+            "max_amplitude",
+            "sigma_min",
+            "sphere_radius",
+            "sphere_mass",
+            "contact_stiffness",
+            "physics_hz",
+            "goal_radius",
+            "out_of_bounds_xy",
+            "out_of_bounds_z",
+            "distance_clip",
+            "reward_normalizer",
+            "heightmap_max_height",
+            "max_object_speed",
+        ):
+            _check_float(self, name, low=0.0, low_open=True)
+        for name in (
+            "friction",
+            "linear_damping",
+            "angular_damping",
+            "gravity",
+            "respawn_delay",
+            "spawn_drop_height",
+            "distance_scale",
+            "slow_speed",
+        ):
+            _check_float(self, name, low=0.0)
+        _check_float(self, "restitution", low=0.0, high=1.0, low_open=True)
+        _check_float(self, "potential_gamma", low=0.0, high=1.0)
+        for name in (
+            "goal_reward",
+            "out_of_bounds_penalty",
+            "time_penalty",
+            "slow_penalty",
+            "potential_scale",
+            "alignment_scale",
+        ):
+            _check_float(self, name)
+        if self.column_shape not in COLUMN_SHAPES:
+            raise ValueError(
+                f"column_shape must be one of {COLUMN_SHAPES}, got {self.column_shape!r}"
+            )
+        if self.sigma_min > self.sigma_max:
+            raise ValueError(
+                f"sigma_min ({self.sigma_min}) must be <= sigma_max ({self.sigma_max})"
+            )
+        if self.num_goals > self.num_objects:
+            raise ValueError(
+                f"num_goals ({self.num_goals}) must be <= num_objects ({self.num_objects})"
+            )
+        if self.column_rest_top - self.max_column_height <= 0.0:
+            raise ValueError(
+                f"column_rest_top ({self.column_rest_top}) must exceed max_column_height "
+                f"({self.max_column_height}) so columns stay above the platform"
+            )
+        free = self.grid_size - 2 * self.spawn_margin
+        if free < 1:
+            raise ValueError(
+                f"spawn_margin ({self.spawn_margin}) leaves no spawn cells on a "
+                f"{self.grid_size}x{self.grid_size} grid; it must be < grid_size / 2"
+            )
+        # Spawned objects and goals keep one sphere diameter apart: the spawn square must hold
+        # at least num_objects + num_goals such discs.
+        spacing = max(1, math.ceil(2.0 * self.sphere_radius / self.cell_size))
+        capacity = math.ceil(free / spacing) ** 2
+        if self.num_objects + self.num_goals > capacity:
+            raise ValueError(
+                f"num_objects ({self.num_objects}) + num_goals ({self.num_goals}) exceeds the "
+                f"{capacity} spawn places that a {self.grid_size}x{self.grid_size} grid with "
+                f"spawn_margin={self.spawn_margin} and sphere_radius={self.sphere_radius} m "
+                f"holds; use a larger grid_size or fewer objects"
+            )
+        if 2.0 * self.sphere_radius >= self.platform_size:
+            raise ValueError(
+                f"sphere_radius ({self.sphere_radius} m) must be below half the platform_size "
+                f"({self.platform_size} m)"
+            )
+
+
+def _check_int(cfg: TerraShiftConfig, name: str, *, minimum: int) -> None:
+    value = getattr(cfg, name)
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+
+
+def _check_float(
+    cfg: TerraShiftConfig,
+    name: str,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+) -> None:
+    value = getattr(cfg, name)
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise ValueError(f"{name} must be a finite number, got {value!r}")
+    too_low = low is not None and (value <= low if low_open else value < low)
+    too_high = high is not None and value > high
+    if too_low or too_high:
+        lo = "-inf" if low is None else f"{low}"
+        hi = "inf" if high is None else f"{high}"
+        bracket = "(" if low_open else "["
+        raise ValueError(f"{name} must be in {bracket}{lo}, {hi}], got {value!r}")

@@ -1,0 +1,139 @@
+"""Observation stage: heightmap rays, the object sequence and the agent features.
+
+Heightmap rows run along +y and columns along +x, the same layout as the column-height grid
+``[G(y), G(x)]``, so row ``i`` / column ``j`` of both refer to the same side of the platform.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from terrashift_rl.sim.events import assigned_goal
+from terrashift_rl.sim.physics import column_center, column_top, smooth_surface
+from terrashift_rl.sim.types import SHAPE_BOX, SHAPE_ELLIPSOID, Model
+
+MISS = wp.constant(-1.0e6)
+
+
+@wp.func
+def normalised_height(model: Model, z: float) -> float:
+    """Maps a height in [0, heightmap_max_height] m to [-1, 1] (clipping outside)."""
+    h = model.heightmap_max_height
+    return 2.0 * wp.clamp(z, 0.0, h) / h - 1.0
+
+
+@wp.kernel
+def cast_heightmap(
+    model: Model,
+    height: wp.array3d(dtype=float),
+    active: wp.array2d(dtype=wp.int32),
+    position: wp.array2d(dtype=wp.vec3),
+    heightmap: wp.array4d(dtype=float),
+):
+    """Casts one vertical ray per lattice point; the lattice spans the platform edge to edge.
+
+    The highest hit of columns and active spheres is recorded; a miss reads as -1.
+    Launch dim: [num_envs, R, R] as (env, row = y, column = x).
+    """
+    e, ry, rx = wp.tid()
+    step = 2.0 * model.half_platform / float(model.heightmap_resolution - 1)
+    x = -model.half_platform + float(rx) * step
+    y = -model.half_platform + float(ry) * step
+    z = float(MISS)
+
+    g = model.grid_size
+    ix = wp.clamp(int(wp.floor((x + model.half_platform) / model.cell_size)), 0, g - 1)
+    iy = wp.clamp(int(wp.floor((y + model.half_platform) / model.cell_size)), 0, g - 1)
+    if model.column_shape == SHAPE_BOX:
+        z = column_top(model, height, height, e, iy, ix, 1.0)
+    elif model.column_shape == SHAPE_ELLIPSOID:
+        a = model.column_half_width
+        dx = x - column_center(model, ix)
+        dy = y - column_center(model, iy)
+        rho2 = (dx * dx + dy * dy) / (a * a)
+        if rho2 <= 1.0 + 1.0e-5:  # rays on the platform edge graze the outer columns
+            top = column_top(model, height, height, e, iy, ix, 1.0)
+            z = top - model.column_half_height * (1.0 - wp.sqrt(wp.max(1.0 - rho2, 0.0)))
+    else:
+        z = smooth_surface(model, height, height, e, x, y, 1.0)[0]
+
+    r = model.sphere_radius
+    for j in range(model.num_objects):
+        if active[e, j] != 0:
+            p = position[e, j]
+            d2 = (p[0] - x) * (p[0] - x) + (p[1] - y) * (p[1] - y)
+            if d2 <= r * r:
+                z = wp.max(z, p[2] + wp.sqrt(r * r - d2))
+    if z == MISS:
+        heightmap[e, 0, ry, rx] = -1.0
+    else:
+        heightmap[e, 0, ry, rx] = normalised_height(model, z)
+
+
+@wp.kernel
+def gather_features(
+    model: Model,
+    height: wp.array3d(dtype=float),
+    goal_cell: wp.array2d(dtype=wp.vec2i),
+    active: wp.array2d(dtype=wp.int32),
+    position: wp.array2d(dtype=wp.vec3),
+    velocity: wp.array2d(dtype=wp.vec3),
+    agent_position: wp.array2d(dtype=wp.vec2),
+    agent_velocity: wp.array2d(dtype=wp.vec2),
+    agent_angle: wp.array2d(dtype=float),
+    agent_angular_velocity: wp.array2d(dtype=float),
+    agent_amplitude: wp.array2d(dtype=float),
+    agent_sigma: wp.array2d(dtype=wp.vec2),
+    object_features: wp.array3d(dtype=float),
+    object_mask: wp.array2d(dtype=wp.bool),
+    agent_features: wp.array3d(dtype=float),
+):
+    """Writes the normalised object sequence, its mask and the agent features.
+
+    Objects: [x, y, z, goal x, goal y, goal z, v_x, v_y, v_z]; x and y over the half platform,
+    z as the heightmap, velocity clipped to +-max_object_speed and divided by it; zeros where
+    the slot is inactive. Agents: [x, y, theta, A, sigma_x, sigma_y, v_x, v_y, omega], each
+    mapped from its range to [-1, 1]. Launch dim: [num_envs].
+    """
+    e = wp.tid()
+    half = model.half_platform
+    vmax = model.max_object_speed
+    for j in range(model.num_objects):
+        on = active[e, j] != 0
+        object_mask[e, j] = on
+        if on:
+            p = position[e, j]
+            goal = assigned_goal(model, height, goal_cell, e, j)
+            v = velocity[e, j]
+            object_features[e, j, 0] = p[0] / half
+            object_features[e, j, 1] = p[1] / half
+            object_features[e, j, 2] = normalised_height(model, p[2])
+            object_features[e, j, 3] = goal[0] / half
+            object_features[e, j, 4] = goal[1] / half
+            object_features[e, j, 5] = normalised_height(model, goal[2])
+            object_features[e, j, 6] = wp.clamp(v[0], -vmax, vmax) / vmax
+            object_features[e, j, 7] = wp.clamp(v[1], -vmax, vmax) / vmax
+            object_features[e, j, 8] = wp.clamp(v[2], -vmax, vmax) / vmax
+        else:
+            for f in range(9):
+                object_features[e, j, f] = 0.0
+    g = float(model.grid_size)
+    srange = model.sigma_max - model.sigma_min
+    for k in range(model.num_agents):
+        c = agent_position[e, k]
+        u = agent_velocity[e, k]
+        s = agent_sigma[e, k]
+        agent_features[e, k, 0] = 2.0 * c[0] / g - 1.0
+        agent_features[e, k, 1] = 2.0 * c[1] / g - 1.0
+        agent_features[e, k, 2] = agent_angle[e, k] / 3.141592653589793 - 1.0
+        agent_features[e, k, 3] = agent_amplitude[e, k] / model.max_amplitude
+        sx = 0.0
+        sy = 0.0
+        if srange > 0.0:
+            sx = 2.0 * (s[0] - model.sigma_min) / srange - 1.0
+            sy = 2.0 * (s[1] - model.sigma_min) / srange - 1.0
+        agent_features[e, k, 4] = sx
+        agent_features[e, k, 5] = sy
+        agent_features[e, k, 6] = u[0] / model.max_velocity
+        agent_features[e, k, 7] = u[1] / model.max_velocity
+        agent_features[e, k, 8] = agent_angular_velocity[e, k] / model.max_angular_velocity

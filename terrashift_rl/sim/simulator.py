@@ -1,0 +1,346 @@
+"""Host side of the simulator: allocation, seeding, and the launch order of a step and a reset.
+
+On a CUDA device the whole step and the whole reset are captured once as CUDA graphs and
+replayed, on a stream ordered after PyTorch's current stream: no host synchronisation happens
+inside either. On the CPU the same kernels run eagerly.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+
+import torch
+import warp as wp
+
+from terrashift_rl.sim import events, observations, physics, wave
+from terrashift_rl.sim.config import TerraShiftConfig
+from terrashift_rl.sim.types import ACTION_DIM, Data, build_model
+
+_KERNEL_MODULES = (wave, physics, events, observations)
+_INT32_MAX = 2**31 - 1
+
+
+@wp.kernel
+def _seed_streams(seed: int, rng: wp.array(dtype=wp.uint32)):
+    e = wp.tid()
+    rng[e] = wp.rand_init(seed, e)
+
+
+class Simulator:
+    """A batch of TerraShift scenes stepped together.
+
+    Args:
+        config: scene parameters (``TerraShiftConfig()``, the pretraining scene, if None).
+        num_envs: number of environments.
+        device: ``"cpu"``, ``"cuda"`` or ``"cuda:N"`` (a ``torch.device`` works too).
+        seed: seed of the per-environment random streams.
+
+    Example:
+        >>> import torch
+        >>> sim = Simulator(num_envs=2, seed=0)
+        >>> sim.reset()
+        >>> sim.step(torch.zeros(2, 8, 6))
+        >>> sim.view("heightmap").shape, sim.view("reward").shape
+        (torch.Size([2, 1, 32, 32]), torch.Size([2]))
+    """
+
+    def __init__(
+        self,
+        config: TerraShiftConfig | None = None,
+        *,
+        num_envs: int = 1,
+        device: str | torch.device = "cpu",
+        seed: int = 0,
+    ):
+        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        self.config = config if config is not None else TerraShiftConfig()
+        self.config.validate()
+        self.num_envs = num_envs
+        self.torch_device = torch.device(device)
+        if self.torch_device.type == "cuda" and self.torch_device.index is None:
+            self.torch_device = torch.device("cuda", torch.cuda.current_device())
+        if self.torch_device.type == "cuda" and not torch.cuda.is_available():
+            raise ValueError(f"device {device!r} requested but CUDA is not available")
+        self.device = wp.get_device(str(self.torch_device))
+        self.model = build_model(self.config)
+        self.data = Data(self.config, num_envs=num_envs, device=self.device)
+        self._views: dict[str, torch.Tensor] = {}
+        self._torch_stream = None
+        self._stream = None
+        if self.device.is_cuda:
+            self._torch_stream = torch.cuda.Stream(device=self.torch_device)
+            self._stream = wp.stream_from_torch(self._torch_stream)
+        self._step_graph = None
+        self._reset_graph = None
+        for module in _KERNEL_MODULES:
+            wp.load_module(module, device=self.device)
+        self.seed(seed)
+        if self.device.is_cuda:
+            self._step_graph = self._capture(self._launch_step)
+            self._reset_graph = self._capture(self._launch_reset)
+
+    # --- public API -----------------------------------------------------------------------
+    def view(self, name: str) -> torch.Tensor:
+        """Zero-copy torch view of a data array (see :class:`~terrashift_rl.sim.types.Data`)."""
+        if name not in self._views:
+            array = getattr(self.data, name, None)
+            if not isinstance(array, wp.array):
+                raise KeyError(f"the simulator has no data array named {name!r}")
+            self._views[name] = wp.to_torch(array)
+        return self._views[name]
+
+    def seed(self, seed: int) -> None:
+        """Re-seeds every environment's random stream (reset afterwards to use it)."""
+        if isinstance(seed, bool) or not isinstance(seed, int):
+            raise ValueError(f"seed must be an integer, got {seed!r}")
+        with self._ordered():
+            wp.launch(_seed_streams, dim=self.num_envs, inputs=[seed % _INT32_MAX, self.data.rng])
+
+    def reset(self, mask: torch.Tensor | None = None) -> None:
+        """Starts new episodes where ``mask`` (bool, [num_envs]) is True; all if None."""
+        target = self.view("env_mask")
+        if mask is None:
+            target.fill_(True)
+        else:
+            if mask.shape != (self.num_envs,) or mask.dtype != torch.bool:
+                raise ValueError(
+                    f"reset mask must be a bool tensor of shape ({self.num_envs},), got "
+                    f"{mask.dtype} {tuple(mask.shape)}"
+                )
+            target.copy_(mask)
+        self._run(self._reset_graph, self._launch_reset)
+
+    def step(self, action: torch.Tensor) -> None:
+        """Advances every environment by one decision (``action_repeat`` physics ticks).
+
+        ``action`` is a float tensor [num_envs, K, 6] on the simulator's device; values are
+        clipped to [-1, 1]. Results are read through :meth:`view`.
+        """
+        self.view("action").copy_(action)
+        self._run(self._step_graph, self._launch_step)
+
+    def physics_tick(self) -> None:
+        """Advances the spheres by one physics tick with the columns moving from
+        ``column_height_prev`` to ``column_height``; no wave, events or observations."""
+        with self._ordered():
+            self._launch_physics()
+
+    def observe(self) -> None:
+        """Recomputes the observations from the current state."""
+        with self._ordered():
+            self._launch_observations()
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """(num_envs, K agents, action dimension)."""
+        return self.num_envs, self.config.num_agents, ACTION_DIM
+
+    # --- launch order ---------------------------------------------------------------------
+    def _launch_step(self) -> None:
+        d, m = self.data, self.model
+        n, k, g = self.num_envs, self.config.num_agents, self.config.grid_size
+        wp.launch(events.begin_decision, dim=n, inputs=[d.reward])
+        for _ in range(self.config.action_repeat):
+            wp.launch(
+                wave.update_agents,
+                dim=(n, k),
+                inputs=[
+                    m,
+                    d.action,
+                    d.agent_position,
+                    d.agent_velocity,
+                    d.agent_angle,
+                    d.agent_angular_velocity,
+                    d.agent_amplitude,
+                    d.agent_sigma,
+                ],
+            )
+            wp.launch(
+                wave.compute_heights,
+                dim=(n, g, g),
+                inputs=[
+                    m,
+                    d.env_mask,
+                    0,
+                    1,
+                    d.agent_position,
+                    d.agent_angle,
+                    d.agent_amplitude,
+                    d.agent_sigma,
+                    d.column_height_prev,
+                    d.column_height,
+                ],
+            )
+            self._launch_physics()
+            wp.launch(
+                events.tick_events,
+                dim=n,
+                inputs=[
+                    m,
+                    d.rng,
+                    d.column_height,
+                    d.goal_cell,
+                    d.sphere_active,
+                    d.spawn_timer,
+                    d.sphere_position,
+                    d.sphere_velocity,
+                    d.sphere_angular_velocity,
+                    d.goal_distance,
+                    d.reward,
+                    d.episode_goals,
+                    d.episode_out_of_bounds,
+                ],
+            )
+        wp.launch(
+            events.end_decision,
+            dim=n,
+            inputs=[m, d.sphere_active, d.spawn_timer, d.step_count, d.terminated, d.truncated],
+        )
+        self._launch_observations()
+
+    def _launch_reset(self) -> None:
+        d, m = self.data, self.model
+        n, g = self.num_envs, self.config.grid_size
+        wp.launch(
+            events.reset_episodes,
+            dim=n,
+            inputs=[
+                m,
+                d.env_mask,
+                d.rng,
+                d.agent_position,
+                d.agent_velocity,
+                d.agent_angle,
+                d.agent_angular_velocity,
+                d.agent_amplitude,
+                d.agent_sigma,
+                d.goal_cell,
+                d.sphere_active,
+                d.spawn_timer,
+                d.step_count,
+                d.reward,
+                d.terminated,
+                d.truncated,
+                d.episode_goals,
+                d.episode_out_of_bounds,
+            ],
+        )
+        wp.launch(
+            wave.compute_heights,
+            dim=(n, g, g),
+            inputs=[
+                m,
+                d.env_mask,
+                1,
+                0,
+                d.agent_position,
+                d.agent_angle,
+                d.agent_amplitude,
+                d.agent_sigma,
+                d.column_height_prev,
+                d.column_height,
+            ],
+        )
+        wp.launch(
+            events.spawn_due,
+            dim=n,
+            inputs=[
+                m,
+                d.env_mask,
+                d.rng,
+                d.column_height,
+                d.goal_cell,
+                d.sphere_active,
+                d.spawn_timer,
+                d.sphere_position,
+                d.sphere_velocity,
+                d.sphere_angular_velocity,
+                d.goal_distance,
+            ],
+        )
+        self._launch_observations()
+
+    def _launch_physics(self) -> None:
+        d, m = self.data, self.model
+        current = (d.sphere_position, d.sphere_velocity, d.sphere_angular_velocity)
+        scratch = (d.sphere_position_next, d.sphere_velocity_next, d.sphere_angular_velocity_next)
+        substeps = self.config.substeps
+        for s in range(substeps):
+            src, dst = (current, scratch) if s % 2 == 0 else (scratch, current)
+            wp.launch(
+                physics.substep,
+                dim=(self.num_envs, self.config.num_objects),
+                inputs=[
+                    m,
+                    (s + 1) / substeps,
+                    d.column_height_prev,
+                    d.column_height,
+                    d.sphere_active,
+                    *src,
+                    *dst,
+                ],
+            )
+        if substeps % 2 == 1:
+            for dst, src in zip(current, scratch, strict=True):
+                wp.copy(dst, src)
+
+    def _launch_observations(self) -> None:
+        d, m = self.data, self.model
+        n, r = self.num_envs, self.config.heightmap_resolution
+        wp.launch(
+            observations.cast_heightmap,
+            dim=(n, r, r),
+            inputs=[m, d.column_height, d.sphere_active, d.sphere_position, d.heightmap],
+        )
+        wp.launch(
+            observations.gather_features,
+            dim=n,
+            inputs=[
+                m,
+                d.column_height,
+                d.goal_cell,
+                d.sphere_active,
+                d.sphere_position,
+                d.sphere_velocity,
+                d.agent_position,
+                d.agent_velocity,
+                d.agent_angle,
+                d.agent_angular_velocity,
+                d.agent_amplitude,
+                d.agent_sigma,
+                d.object_features,
+                d.object_mask,
+                d.agent_features,
+            ],
+        )
+
+    # --- execution ------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def _ordered(self) -> Iterator[None]:
+        """Runs launches on the simulator's stream, ordered after and before torch's work."""
+        if self._stream is None:
+            with wp.ScopedDevice(self.device):
+                yield
+            return
+        current = torch.cuda.current_stream(self.torch_device)
+        self._torch_stream.wait_stream(current)
+        with wp.ScopedDevice(self.device), wp.ScopedStream(self._stream):
+            yield
+        current.wait_stream(self._torch_stream)
+
+    def _capture(self, launch) -> wp.Graph:
+        with (
+            wp.ScopedDevice(self.device),
+            wp.ScopedCapture(device=self.device, stream=self._stream) as capture,
+        ):
+            launch()
+        return capture.graph
+
+    def _run(self, graph, launch) -> None:
+        with self._ordered():
+            if graph is not None:
+                wp.capture_launch(graph, stream=self._stream)
+            else:
+                launch()

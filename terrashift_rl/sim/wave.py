@@ -1,0 +1,121 @@
+"""Wave stage: second-order wavelet parameter dynamics and the column heights they produce.
+
+Each agent owns one Gaussian wavelet with state (x, y, theta, A, sigma_x, sigma_y, v_x, v_y,
+omega). An action in [-1, 1]^6 changes the *rates* (v_x, v_y, omega) and the shape (A, sigma_x,
+sigma_y) by a gain times the wave step each physics tick; rates are clamped before they move
+the wavelet, so the speed limits hold exactly. Heights are the clipped sum of all wavelets at
+integer cell positions, with offsets wrapped into [-G/2, G/2) when the grid is a torus.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from terrashift_rl.sim.types import Model
+
+TWO_PI = wp.constant(6.283185307179586)
+
+
+@wp.func
+def wrap_offset(d: float, period: float) -> float:
+    """Maps an offset to [-period / 2, period / 2)."""
+    return d - period * wp.floor(d / period + 0.5)
+
+
+@wp.kernel
+def update_agents(
+    model: Model,
+    action: wp.array3d(dtype=float),
+    position: wp.array2d(dtype=wp.vec2),
+    velocity: wp.array2d(dtype=wp.vec2),
+    angle: wp.array2d(dtype=float),
+    angular_velocity: wp.array2d(dtype=float),
+    amplitude: wp.array2d(dtype=float),
+    sigma: wp.array2d(dtype=wp.vec2),
+):
+    """Applies one physics tick of action deltas to every wavelet. Launch dim: [num_envs, K]."""
+    e, k = wp.tid()
+    step = model.wave_step
+    a0 = wp.clamp(action[e, k, 0], -1.0, 1.0)
+    a1 = wp.clamp(action[e, k, 1], -1.0, 1.0)
+    a2 = wp.clamp(action[e, k, 2], -1.0, 1.0)
+    a3 = wp.clamp(action[e, k, 3], -1.0, 1.0)
+    a4 = wp.clamp(action[e, k, 4], -1.0, 1.0)
+    a5 = wp.clamp(action[e, k, 5], -1.0, 1.0)
+
+    vmax = model.max_velocity
+    v = velocity[e, k] + model.velocity_gain * step * wp.vec2(a0, a1)
+    v = wp.vec2(wp.clamp(v[0], -vmax, vmax), wp.clamp(v[1], -vmax, vmax))
+    omax = model.max_angular_velocity
+    w = wp.clamp(angular_velocity[e, k] + model.angular_velocity_gain * step * a2, -omax, omax)
+    amax = model.max_amplitude
+    amp = wp.clamp(amplitude[e, k] + model.amplitude_gain * step * a3, -amax, amax)
+    s = sigma[e, k] + model.sigma_gain * step * wp.vec2(a4, a5)
+    s = wp.vec2(
+        wp.clamp(s[0], model.sigma_min, model.sigma_max),
+        wp.clamp(s[1], model.sigma_min, model.sigma_max),
+    )
+
+    g = float(model.grid_size)
+    p = position[e, k] + step * v
+    if model.wrap_edges != 0:
+        p = wp.vec2(p[0] - g * wp.floor(p[0] / g), p[1] - g * wp.floor(p[1] / g))
+    else:
+        p = wp.vec2(wp.clamp(p[0], 0.0, g - 1.0), wp.clamp(p[1], 0.0, g - 1.0))
+    theta = angle[e, k] + step * w
+    theta = theta - TWO_PI * wp.floor(theta / TWO_PI)
+
+    position[e, k] = p
+    velocity[e, k] = v
+    angle[e, k] = theta
+    angular_velocity[e, k] = w
+    amplitude[e, k] = amp
+    sigma[e, k] = s
+
+
+@wp.kernel
+def compute_heights(
+    model: Model,
+    env_mask: wp.array(dtype=wp.bool),
+    use_mask: int,
+    keep_velocity: int,
+    position: wp.array2d(dtype=wp.vec2),
+    angle: wp.array2d(dtype=float),
+    amplitude: wp.array2d(dtype=float),
+    sigma: wp.array2d(dtype=wp.vec2),
+    height_prev: wp.array3d(dtype=float),
+    height: wp.array3d(dtype=float),
+):
+    """Sums the wavelets at every column. Launch dim: [num_envs, G, G] as (env, iy, ix).
+
+    With ``keep_velocity`` the old heights move to ``height_prev`` (the columns then move
+    between the two over the tick); otherwise both get the new heights (columns at rest).
+    """
+    e, iy, ix = wp.tid()
+    if use_mask != 0 and not env_mask[e]:
+        return
+    g = float(model.grid_size)
+    total = 0.0
+    for k in range(model.num_agents):
+        p = position[e, k]
+        dx = float(ix) - p[0]
+        dy = float(iy) - p[1]
+        if model.wrap_edges != 0:
+            dx = wrap_offset(dx, g)
+            dy = wrap_offset(dy, g)
+        c = wp.cos(angle[e, k])
+        s = wp.sin(angle[e, k])
+        # rotate the offset by -theta into the wavelet's frame
+        xr = c * dx + s * dy
+        yr = -s * dx + c * dy
+        sg = sigma[e, k]
+        total += amplitude[e, k] * wp.exp(
+            -0.5 * (xr * xr / (sg[0] * sg[0]) + yr * yr / (sg[1] * sg[1]))
+        )
+    hmax = model.max_column_height
+    h = wp.clamp(total, -hmax, hmax)
+    if keep_velocity != 0:
+        height_prev[e, iy, ix] = height[e, iy, ix]
+    else:
+        height_prev[e, iy, ix] = h
+    height[e, iy, ix] = h
