@@ -79,18 +79,18 @@ def try_spawn(
         cell = random_spawn_cell(model, rng, e)
         x = column_center(model, cell[0])
         y = column_center(model, cell[1])
-        free = 1
+        free = int(1)
         for o in range(model.num_objects):
             if o != j and active[e, o] != 0:
                 q = position[e, o]
                 if (q[0] - x) * (q[0] - x) + (q[1] - y) * (q[1] - y) < 4.0 * r * r:
-                    free = 0
+                    free = int(0)
         gr = 2.0 * model.goal_radius
         if (goal[0] - x) * (goal[0] - x) + (goal[1] - y) * (goal[1] - y) < gr * gr:
-            free = 0
+            free = int(0)
         if free != 0:
             reach = int(wp.ceil(r / model.cell_size))
-            top = -1.0e6
+            top = float(-1.0e6)
             g = model.grid_size
             for iy in range(wp.max(cell[1] - reach, 0), wp.min(cell[1] + reach, g - 1) + 1):
                 for ix in range(wp.max(cell[0] - reach, 0), wp.min(cell[0] + reach, g - 1) + 1):
@@ -148,11 +148,11 @@ def reset_episodes(
     for i in range(model.num_goals):
         cell = random_spawn_cell(model, rng, e)
         for _ in range(model.spawn_tries):
-            clash = 0
+            clash = int(0)
             for o in range(i):
                 other = goal_cell[e, o]
                 if wp.abs(other[0] - cell[0]) < 2 and wp.abs(other[1] - cell[1]) < 2:
-                    clash = 1
+                    clash = int(1)
             if clash == 0:
                 break
             cell = random_spawn_cell(model, rng, e)
@@ -234,7 +234,7 @@ def tick_events(
     ``(time_penalty + sum) / reward_normalizer``.
     """
     e = wp.tid()
-    total = 0.0
+    total = float(0.0)
     for j in range(model.num_objects):
         if active[e, j] != 0:
             p = position[e, j]
@@ -243,11 +243,11 @@ def tick_events(
             to_goal = goal - p
             d = wp.length(to_goal)
             lim = model.out_of_bounds_xy
-            resolved = 0
+            resolved = int(0)
             if d <= model.goal_radius:
                 total += model.goal_reward
                 episode_goals[e] = episode_goals[e] + 1
-                resolved = 1
+                resolved = int(1)
             elif (
                 wp.abs(p[0]) > lim
                 or wp.abs(p[1]) > lim
@@ -256,7 +256,7 @@ def tick_events(
             ):
                 total += model.out_of_bounds_penalty
                 episode_out_of_bounds[e] = episode_out_of_bounds[e] + 1
-                resolved = 1
+                resolved = int(1)
             else:
                 previous = goal_distance[e, j]
                 clip = model.distance_clip
@@ -310,7 +310,7 @@ def end_decision(
     step_count[e] = count
     truncated[e] = count >= model.max_episode_steps
     if model.respawn == 0:
-        done = True
+        done = bool(True)
         for j in range(model.num_objects):
             if active[e, j] != 0 or spawn_timer[e, j] != -1:
                 done = False

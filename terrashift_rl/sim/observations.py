@@ -127,8 +127,8 @@ def gather_features(
         agent_features[e, k, 1] = 2.0 * c[1] / g - 1.0
         agent_features[e, k, 2] = agent_angle[e, k] / 3.141592653589793 - 1.0
         agent_features[e, k, 3] = agent_amplitude[e, k] / model.max_amplitude
-        sx = 0.0
-        sy = 0.0
+        sx = float(0.0)
+        sy = float(0.0)
         if srange > 0.0:
             sx = 2.0 * (s[0] - model.sigma_min) / srange - 1.0
             sy = 2.0 * (s[1] - model.sigma_min) / srange - 1.0

@@ -88,8 +88,8 @@ def smooth_surface(
     s11 = column_speed(model, height_prev, height, e, j0 + 1, i0 + 1)
     z = (1.0 - tv) * ((1.0 - tu) * z00 + tu * z10) + tv * ((1.0 - tu) * z01 + tu * z11)
     speed = (1.0 - tv) * ((1.0 - tu) * s00 + tu * s10) + tv * ((1.0 - tu) * s01 + tu * s11)
-    dzdx = 0.0
-    dzdy = 0.0
+    dzdx = float(0.0)
+    dzdy = float(0.0)
     if u > 0.0 and u < gmax:
         dzdx = ((1.0 - tv) * (z10 - z00) + tv * (z11 - z01)) / model.cell_size
     if v > 0.0 and v < gmax:
@@ -103,8 +103,8 @@ def ellipse_closest(a: float, b: float, px: float, py: float) -> wp.vec2:
     on the ellipse's evolute; accurate to float precision after four iterations)."""
     ax = wp.abs(px)
     ay = wp.abs(py)
-    tx = 0.70710678
-    ty = 0.70710678
+    tx = float(0.70710678)
+    ty = float(0.70710678)
     for _ in range(4):
         x = a * tx
         y = b * ty

@@ -95,7 +95,7 @@ def compute_heights(
     if use_mask != 0 and not env_mask[e]:
         return
     g = float(model.grid_size)
-    total = 0.0
+    total = float(0.0)
     for k in range(model.num_agents):
         p = position[e, k]
         dx = float(ix) - p[0]

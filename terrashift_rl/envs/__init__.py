@@ -1,0 +1,5 @@
+"""TorchRL environments built on the TerraShift simulator."""
+
+from terrashift_rl.envs.terrashift import EVENT_KEYS, GROUP, TerraShiftEnv
+
+__all__ = ["EVENT_KEYS", "GROUP", "TerraShiftEnv"]

@@ -1,0 +1,198 @@
+"""TerraShift as a batched TorchRL environment with the multi-agent group ``"agents"``."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from terrashift_rl.sim import Simulator, TerraShiftConfig
+from terrashift_rl.sim.types import ACTION_DIM, AGENT_FEATURES, OBJECT_FEATURES
+
+GROUP = "agents"
+"""Name of the agent group in every nested key."""
+EVENT_KEYS = ("episode_goals", "episode_out_of_bounds")
+"""Per-environment event counts since the last reset, shape [num_envs, 1]."""
+
+
+class TerraShiftEnv(EnvBase):
+    """K wavelet agents shape a column grid to roll spheres onto colour-matched goals.
+
+    Every environment of the batch steps at once in Warp kernels (a CUDA graph on GPU).
+    Keys follow TorchRL's multi-agent conventions, so its MAPPO/IPPO losses work unchanged:
+
+    ==================================  ===================  =======================================
+    key                                 shape                meaning
+    ==================================  ===================  =======================================
+    ``("agents", "observation")``       [N, K, 9]            wavelet parameters in [-1, 1]
+    ``("agents", "mask")``              [N, K] bool          agent present (always True here)
+    ``"heightmap"``                     [N, 1, R, R]         ray heights in [-1, 1], rows along +y
+    ``"objects"``                       [N, M, 9]            sphere and goal positions, velocity
+    ``"objects_mask"``                  [N, M] bool          True where the slot holds a sphere
+    ``"episode_goals"``                 [N, 1] int64         goals reached since the reset
+    ``"episode_out_of_bounds"``         [N, 1] int64         spheres lost since the reset
+    ``("agents", "action")``            [N, K, 6]            deltas in [-1, 1] (clipped)
+    ``("agents", "reward")``            [N, K, 1]            the team reward, same for every agent
+    ``done/terminated/truncated``       [N, 1] and [N, K, 1] at the root and under ``"agents"``
+    ==================================  ===================  =======================================
+
+    ``truncated`` marks the step limit; ``terminated`` is only raised in evaluation mode
+    (``respawn=False``) once every sphere is resolved.
+
+    Actions of the wrong shape, dtype or device, or holding NaN or infinity, raise
+    ``ValueError`` naming ``("agents", "action")`` before anything is simulated; finite values
+    outside [-1, 1] are clipped.
+
+    Args:
+        config: scene parameters; the pretraining scene if None.
+        num_envs: number of environments in the batch.
+        device: ``"cpu"`` or a CUDA device.
+        seed: seed of the simulator's random streams; drawn from torch's generator if None.
+        **overrides: config fields to replace, e.g. ``grid_size=30``.
+
+    Example:
+        >>> env = TerraShiftEnv(num_envs=4, seed=0, column_shape="box")
+        >>> td = env.rollout(3)
+        >>> td["next", "agents", "reward"].shape
+        torch.Size([4, 3, 8, 1])
+        >>> td["heightmap"].shape
+        torch.Size([4, 3, 1, 32, 32])
+    """
+
+    batch_locked = True
+
+    def __init__(
+        self,
+        config: TerraShiftConfig | None = None,
+        *,
+        num_envs: int = 1,
+        device: str | torch.device = "cpu",
+        seed: int | None = None,
+        **overrides: Any,
+    ):
+        config = config if config is not None else TerraShiftConfig()
+        if overrides:
+            config = config.replace(**overrides)
+        if seed is None:
+            seed = int(torch.empty((), dtype=torch.int64).random_().item())
+        self.sim = Simulator(config, num_envs=num_envs, device=device, seed=seed)
+        super().__init__(device=self.sim.torch_device, batch_size=torch.Size([num_envs]))
+        self.config = config
+        self._make_specs()
+
+    # --- specs ----------------------------------------------------------------------------
+    def _make_specs(self) -> None:
+        cfg, dev = self.config, self.device
+        n, k, m, r = self.num_envs, cfg.num_agents, cfg.num_objects, cfg.heightmap_resolution
+
+        def flag(*shape):
+            return Categorical(2, shape=torch.Size(shape), dtype=torch.bool, device=dev)
+
+        def unit_box(*shape):
+            return Bounded(-1.0, 1.0, shape=torch.Size(shape), dtype=torch.float32, device=dev)
+
+        self.observation_spec = Composite(
+            {
+                GROUP: Composite(
+                    observation=unit_box(n, k, AGENT_FEATURES), mask=flag(n, k), shape=(n, k)
+                ),
+                "heightmap": unit_box(n, 1, r, r),
+                "objects": unit_box(n, m, OBJECT_FEATURES),
+                "objects_mask": flag(n, m),
+                **{
+                    key: Unbounded(shape=(n, 1), dtype=torch.int64, device=dev)
+                    for key in EVENT_KEYS
+                },
+            },
+            shape=(n,),
+        )
+        self.action_spec = Composite(
+            {GROUP: Composite(action=unit_box(n, k, ACTION_DIM), shape=(n, k))}, shape=(n,)
+        )
+        self.reward_spec = Composite(
+            {GROUP: Composite(reward=Unbounded(shape=(n, k, 1), device=dev), shape=(n, k))},
+            shape=(n,),
+        )
+        flags = ("done", "terminated", "truncated")
+        self.done_spec = Composite(
+            {
+                **{key: flag(n, 1) for key in flags},
+                GROUP: Composite({key: flag(n, k, 1) for key in flags}, shape=(n, k)),
+            },
+            shape=(n,),
+        )
+
+    # --- EnvBase API ----------------------------------------------------------------------
+    @property
+    def num_envs(self) -> int:
+        return self.sim.num_envs
+
+    def _set_seed(self, seed: int | None) -> None:
+        if seed is not None:
+            self.sim.seed(int(seed))
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        self.sim.reset(self._reset_mask(tensordict))
+        return self._output(with_reward=False)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        self.sim.step(self._checked_action(tensordict))
+        return self._output(with_reward=True)
+
+    # --- helpers --------------------------------------------------------------------------
+    def _reset_mask(self, tensordict: TensorDictBase | None) -> torch.Tensor | None:
+        if tensordict is None:
+            return None
+        mask = tensordict.get("_reset", None)
+        if mask is not None:
+            return mask.reshape(self.num_envs).to(torch.bool)
+        mask = tensordict.get((GROUP, "_reset"), None)
+        if mask is not None:
+            return mask.reshape(self.num_envs, -1).any(-1)
+        return None
+
+    def _checked_action(self, tensordict: TensorDictBase) -> torch.Tensor:
+        key = (GROUP, "action")
+        action = tensordict.get(key, None)
+        expected = self.sim.shape
+        if action is None:
+            raise ValueError(f"the input tensordict has no {key} entry")
+        if tuple(action.shape) != expected:
+            raise ValueError(f"{key} must have shape {expected}, got {tuple(action.shape)}")
+        if action.dtype != torch.float32:
+            raise ValueError(f"{key} must be float32, got {action.dtype}")
+        if action.device != self.device:
+            raise ValueError(f"{key} must be on {self.device}, got {action.device}")
+        if not torch.isfinite(action).all():
+            raise ValueError(f"{key} holds NaN or infinite values")
+        return action
+
+    def _output(self, *, with_reward: bool) -> TensorDictBase:
+        sim, n, k = self.sim, self.num_envs, self.config.num_agents
+        terminated = sim.view("terminated").unsqueeze(-1).clone()
+        truncated = sim.view("truncated").unsqueeze(-1).clone()
+        done = terminated | truncated
+        agents = {
+            "observation": sim.view("agent_features").clone(),
+            "mask": torch.ones(n, k, dtype=torch.bool, device=self.device),
+            "done": done.unsqueeze(-1).expand(n, k, 1).clone(),
+            "terminated": terminated.unsqueeze(-1).expand(n, k, 1).clone(),
+            "truncated": truncated.unsqueeze(-1).expand(n, k, 1).clone(),
+        }
+        if with_reward:
+            agents["reward"] = sim.view("reward").reshape(n, 1, 1).expand(n, k, 1).clone()
+        out = {
+            GROUP: TensorDict(agents, batch_size=(n, k), device=self.device),
+            "heightmap": sim.view("heightmap").clone(),
+            "objects": sim.view("object_features").clone(),
+            "objects_mask": sim.view("object_mask").clone(),
+            "done": done,
+            "terminated": terminated,
+            "truncated": truncated,
+        }
+        for key in EVENT_KEYS:
+            out[key] = sim.view(key).to(torch.int64).unsqueeze(-1)
+        return TensorDict(out, batch_size=(n,), device=self.device)
