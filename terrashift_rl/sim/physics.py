@@ -182,6 +182,21 @@ def box_contact(model: Model, p: wp.vec3, cx: float, cy: float, top: float) -> w
 
 
 @wp.func
+def surface_distance_squared(
+    model: Model,
+    height_prev: wp.array3d(dtype=float),
+    height: wp.array3d(dtype=float),
+    e: int,
+    p: wp.vec3,
+    u: float,
+    v: float,
+    frac: float,
+) -> float:
+    d = p - wp.vec3(u, v, smooth_surface(model, height_prev, height, e, u, v, frac)[0])
+    return wp.dot(d, d)
+
+
+@wp.func
 def smooth_contact(
     model: Model,
     height_prev: wp.array3d(dtype=float),
@@ -190,26 +205,55 @@ def smooth_contact(
     p: wp.vec3,
     frac: float,
 ) -> wp.spatial_vector:
-    """Closest point of the smooth surface to ``p`` by projection onto successive tangent
-    planes. Returns (normal xyz, signed distance, surface vertical speed, unused)."""
+    """Closest point of the smooth surface to ``p``. Returns (normal xyz, signed distance,
+    surface vertical speed, unused).
+
+    The penalty force is conservative only if the distance is the true (global) distance, which
+    is continuous even where the closest point jumps across a valley. A 5 x 5 sample of the
+    sphere's footprint picks the basin; projections onto the tangent plane, with backtracking,
+    refine it. The normal points from the closest point to the centre.
+    """
     half = model.half_platform
+    r = model.sphere_radius
     u = wp.clamp(p[0], -half, half)
     v = wp.clamp(p[1], -half, half)
-    for _ in range(4):
+    best = surface_distance_squared(model, height_prev, height, e, p, u, v, frac)
+    for a in range(-2, 3):
+        for b in range(-2, 3):
+            cu = wp.clamp(p[0] + 0.5 * r * float(a), -half, half)
+            cv = wp.clamp(p[1] + 0.5 * r * float(b), -half, half)
+            d2 = surface_distance_squared(model, height_prev, height, e, p, cu, cv, frac)
+            if d2 < best:
+                best = d2
+                u = cu
+                v = cv
+    for _ in range(6):
         s = smooth_surface(model, height_prev, height, e, u, v, frac)
         n = wp.normalize(wp.vec3(-s[1], -s[2], 1.0))
-        q = wp.vec3(u, v, s[0])
-        proj = p - wp.dot(p - q, n) * n
-        u = wp.clamp(proj[0], -half, half)
-        v = wp.clamp(proj[1], -half, half)
+        proj = p - wp.dot(p - wp.vec3(u, v, s[0]), n) * n
+        du = wp.clamp(proj[0], -half, half) - u
+        dv = wp.clamp(proj[1], -half, half) - v
+        step = float(1.0)
+        for _ in range(4):
+            d2 = surface_distance_squared(
+                model, height_prev, height, e, p, u + step * du, v + step * dv, frac
+            )
+            if d2 < best:
+                best = d2
+                u = u + step * du
+                v = v + step * dv
+                break
+            step = 0.5 * step
     s = smooth_surface(model, height_prev, height, e, u, v, frac)
-    n = wp.normalize(wp.vec3(-s[1], -s[2], 1.0))
     diff = p - wp.vec3(u, v, s[0])
-    dist = wp.dot(diff, n)
-    # beyond the platform edge the closest point is on the edge, not below the sphere
-    if (wp.abs(p[0]) > half or wp.abs(p[1]) > half) and dist > 0.0:
-        dist = wp.length(diff)
-        n = diff / wp.max(dist, 1.0e-12)
+    dist = wp.sqrt(best)
+    n = diff / wp.max(dist, 1.0e-12)
+    below = smooth_surface(model, height_prev, height, e, u, v, frac)[0]
+    if wp.abs(p[0]) <= half and wp.abs(p[1]) <= half:
+        below = smooth_surface(model, height_prev, height, e, p[0], p[1], frac)[0]
+    if p[2] < below:  # centre under the surface: push it back out
+        dist = -dist
+        n = -n
     return wp.spatial_vector(n[0], n[1], n[2], dist, s[3], 0.0)
 
 

@@ -35,6 +35,8 @@ class Simulator:
         num_envs: number of environments.
         device: ``"cpu"``, ``"cuda"`` or ``"cuda:N"`` (a ``torch.device`` works too).
         seed: seed of the per-environment random streams.
+        cuda_graph: on CUDA, replay the step and reset as captured graphs (False launches
+            every kernel eagerly, for debugging).
 
     Example:
         >>> import torch
@@ -52,6 +54,7 @@ class Simulator:
         num_envs: int = 1,
         device: str | torch.device = "cpu",
         seed: int = 0,
+        cuda_graph: bool = True,
     ):
         if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
@@ -77,7 +80,7 @@ class Simulator:
         for module in _KERNEL_MODULES:
             wp.load_module(module, device=self.device)
         self.seed(seed)
-        if self.device.is_cuda:
+        if self.device.is_cuda and cuda_graph:
             self._step_graph = self._capture(self._launch_step)
             self._reset_graph = self._capture(self._launch_reset)
 
@@ -331,9 +334,11 @@ class Simulator:
         current.wait_stream(self._torch_stream)
 
     def _capture(self, launch) -> wp.Graph:
+        # launches go to the device's current stream: make it the stream being captured
         with (
             wp.ScopedDevice(self.device),
-            wp.ScopedCapture(device=self.device, stream=self._stream) as capture,
+            wp.ScopedStream(self._stream),
+            wp.ScopedCapture(stream=self._stream) as capture,
         ):
             launch()
         return capture.graph

@@ -93,13 +93,19 @@ class Model:
     max_object_speed: float
 
 
-def damping_ratio_for_restitution(restitution: float) -> float:
+def damping_ratio_for_restitution(restitution: float, *, step: float = 1.0e-3) -> float:
     """Damping ratio of a non-adhesive linear spring-dashpot contact with the given restitution.
 
     The contact force ``k x + c x'`` is clipped at zero (a contact never pulls), which ends a
-    collision slightly before the spring returns to its rest length; the classic formula
-    ``-ln e / sqrt(pi^2 + ln^2 e)`` ignores that and overshoots. This solves the clipped
-    one-dimensional collision numerically (bisection on the damping ratio).
+    collision slightly before the spring returns to its rest length, and a time step that is
+    not tiny against the contact's duration shifts the outcome too; the classic formula
+    ``-ln e / sqrt(pi^2 + ln^2 e)`` ignores both. This integrates the clipped one-dimensional
+    collision with the simulator's own scheme (semi-implicit Euler) and bisects on the damping
+    ratio, so the restitution holds for the time step in use.
+
+    Args:
+        restitution: target coefficient of restitution in (0, 1].
+        step: the integration step times the contact's natural frequency sqrt(k / m).
 
     Example:
         >>> round(damping_ratio_for_restitution(1.0), 6)
@@ -112,17 +118,24 @@ def damping_ratio_for_restitution(restitution: float) -> float:
 
     def exit_speed(zeta: float) -> float:
         # Unit mass, unit natural frequency, unit approach speed; x is the overlap.
-        x, v, dt = 0.0, 1.0, 1.0e-3
+        x, v = 0.0, 1.0
         while True:
             a = -x - 2.0 * zeta * v
             if a > 0.0 and x > 0.0:  # force would pull: contact has already opened
                 return -v
-            v += a * dt
-            x += v * dt
+            v += a * step
+            x += v * step
             if x <= 0.0:
                 return -v
 
-    low, high = 0.0, 5.0
+    # Beyond 2 zeta step = 1 one step of damping alone reverses the approach: the explicit
+    # scheme is no longer a contact model, and the exit speed stops falling with zeta.
+    low, high = 0.0, 0.5 / step
+    if exit_speed(high) > restitution:
+        raise ValueError(
+            f"restitution {restitution} is out of reach at this time step (step * frequency = "
+            f"{step:.3f}); raise substeps or lower contact_stiffness"
+        )
     for _ in range(40):
         mid = 0.5 * (low + high)
         if exit_speed(mid) > restitution:
@@ -166,11 +179,19 @@ def build_model(config: TerraShiftConfig) -> Model:
     m.sphere_inertia = 0.4 * mass * config.sphere_radius**2
     m.friction = config.friction
     m.contact_stiffness = config.contact_stiffness
-    zeta = damping_ratio_for_restitution(config.restitution)
-    # Critical damping scales with the reduced mass of the pair: a column is kinematic
-    # (infinite mass), so a sphere-column pair has the sphere's mass, a sphere pair half of it.
-    m.column_contact_damping = 2.0 * zeta * math.sqrt(config.contact_stiffness * mass)
-    m.sphere_contact_damping = 2.0 * zeta * math.sqrt(config.contact_stiffness * 0.5 * mass)
+    # The damping scales with the reduced mass of the pair: a column is kinematic (infinite
+    # mass), so a sphere-column pair has the sphere's mass, a sphere pair half of it.
+    k, dt = config.contact_stiffness, config.substep_dt
+    for name, reduced_mass in (("column", mass), ("sphere", 0.5 * mass)):
+        frequency = math.sqrt(k / reduced_mass)
+        if frequency * dt > 1.0:
+            raise ValueError(
+                f"contact_stiffness {k} N/m is too stiff for a substep of {dt * 1e3:.2f} ms "
+                f"(the {name} contact needs substep * sqrt(k / m) <= 1, here "
+                f"{frequency * dt:.2f}); raise substeps or lower contact_stiffness"
+            )
+        zeta = damping_ratio_for_restitution(config.restitution, step=frequency * dt)
+        setattr(m, f"{name}_contact_damping", 2.0 * zeta * math.sqrt(k * reduced_mass))
     m.linear_damping = config.linear_damping
     m.angular_damping = config.angular_damping
     m.gravity = config.gravity

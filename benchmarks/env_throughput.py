@@ -1,0 +1,115 @@
+"""Environment throughput: env-steps/s (decisions, action repeat included) against num_envs.
+
+Two paths are timed at every size: the raw simulator step (``Simulator.step`` with a fixed
+action tensor) and the TorchRL environment (``env.step_and_maybe_reset``, what collectors
+call, including the key plumbing and resets). Prints a table and writes JSON.
+
+    python benchmarks/env_throughput.py --device cuda
+    python benchmarks/env_throughput.py --device cpu --num-envs 1 64 --seconds 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from datetime import date
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+
+from terrashift_rl.envs import GROUP, TerraShiftEnv
+from terrashift_rl.sim import Simulator, TerraShiftConfig
+
+DEFAULT_SIZES = [1, 4, 16, 64, 256, 1024, 4096, 16384, 65536]
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _rate(step, num_envs: int, device: torch.device, seconds: float, warmup: int) -> float:
+    """Env-steps/s of ``step()``, timed over at least ``seconds`` after ``warmup`` calls."""
+    for _ in range(warmup):
+        step()
+    _sync(device)
+    calls, start = 0, time.perf_counter()
+    while True:
+        for _ in range(10):
+            step()
+        calls += 10
+        _sync(device)
+        elapsed = time.perf_counter() - start
+        if elapsed >= seconds:
+            return calls * num_envs / elapsed
+
+
+def measure(config: TerraShiftConfig, num_envs: int, device: torch.device, seconds: float) -> dict:
+    k = config.num_agents
+    generator = torch.Generator(device=device).manual_seed(0)
+    action = torch.rand(num_envs, k, 6, device=device, generator=generator) * 2 - 1
+
+    sim = Simulator(config, num_envs=num_envs, device=device, seed=0)
+    sim.reset()
+    sim_rate = _rate(lambda: sim.step(action), num_envs, device, seconds, warmup=5)
+    del sim
+
+    env = TerraShiftEnv(config, num_envs=num_envs, device=device, seed=0)
+    state = {"td": env.reset()}
+
+    def env_step() -> None:
+        td = state["td"]
+        td.set((GROUP, "action"), action)
+        _, state["td"] = env.step_and_maybe_reset(td)
+
+    env_rate = _rate(env_step, num_envs, device, seconds, warmup=5)
+    del env
+    return {"num_envs": num_envs, "sim_steps_per_s": sim_rate, "env_steps_per_s": env_rate}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--num-envs", type=int, nargs="+", default=DEFAULT_SIZES)
+    parser.add_argument("--seconds", type=float, default=2.0, help="timing window per size")
+    parser.add_argument("--column-shape", default="ellipsoid")
+    parser.add_argument("--out", type=Path, default=None, help="JSON path (default by device)")
+    args = parser.parse_args()
+
+    device = torch.device(args.device)
+    config = TerraShiftConfig.preset("pretrain", column_shape=args.column_shape)
+    device_name = (
+        torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor()
+    )
+    print(f"TerraShift env throughput, pretrain scene ({config.column_shape}), {device_name}")
+    print(f"{'num_envs':>9} | {'simulator env-steps/s':>22} | {'TorchRL env env-steps/s':>24}")
+    rows = []
+    for n in args.num_envs:
+        row = measure(config, n, device, args.seconds)
+        rows.append(row)
+        print(f"{n:>9} | {row['sim_steps_per_s']:>22,.0f} | {row['env_steps_per_s']:>24,.0f}")
+
+    out = args.out or Path(__file__).parent / "results" / f"env_throughput_{device.type}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "benchmark": "env_throughput",
+        "date": date.today().isoformat(),
+        "device": device_name,
+        "torch": torch.__version__,
+        "config": {
+            "preset": "pretrain",
+            "column_shape": config.column_shape,
+            "substeps": config.substeps,
+            "action_repeat": config.action_repeat,
+        },
+        "rows": rows,
+    }
+    out.write_text(json.dumps(payload, indent=2))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
