@@ -25,8 +25,16 @@ def test_cuda_graph_replay_matches_eager_launches(shape):
             sim.step(action)
     torch.cuda.synchronize()
     graph, eager = sims
-    for name in ("agent_features", "column_height", "sphere_active", "sphere_position",
-                 "reward", "step_count", "heightmap", "object_features"):
+    for name in (
+        "agent_features",
+        "column_height",
+        "sphere_active",
+        "sphere_position",
+        "reward",
+        "step_count",
+        "heightmap",
+        "object_features",
+    ):
         torch.testing.assert_close(graph.view(name), eager.view(name), atol=0, rtol=0)
     # the replayed graph really simulates: spheres moved and the step counter advanced
     assert graph.view("sphere_velocity").abs().sum() > 0
