@@ -6,6 +6,10 @@ call, including the key plumbing and resets). Prints a table and writes JSON.
 
     python benchmarks/env_throughput.py --device cuda
     python benchmarks/env_throughput.py --device cpu --num-envs 1 64 --seconds 2
+    python benchmarks/env_throughput.py --device cuda --num-envs 65536 --profile
+
+``--profile`` adds, for each size, the GPU time of every kernel over eager (non-graph) steps,
+summed by kernel name: where a step's time goes.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ from datetime import date
 from pathlib import Path
 
 import torch
-from tensordict import TensorDict
+import warp as wp
 
 from terrashift_rl.envs import GROUP, TerraShiftEnv
 from terrashift_rl.sim import Simulator, TerraShiftConfig
@@ -55,7 +59,6 @@ def measure(config: TerraShiftConfig, num_envs: int, device: torch.device, secon
     sim = Simulator(config, num_envs=num_envs, device=device, seed=0)
     sim.reset()
     sim_rate = _rate(lambda: sim.step(action), num_envs, device, seconds, warmup=5)
-    del sim
 
     env = TerraShiftEnv(config, num_envs=num_envs, device=device, seed=0)
     state = {"td": env.reset()}
@@ -66,8 +69,26 @@ def measure(config: TerraShiftConfig, num_envs: int, device: torch.device, secon
         _, state["td"] = env.step_and_maybe_reset(td)
 
     env_rate = _rate(env_step, num_envs, device, seconds, warmup=5)
-    del env
     return {"num_envs": num_envs, "sim_steps_per_s": sim_rate, "env_steps_per_s": env_rate}
+
+
+def profile(config: TerraShiftConfig, num_envs: int, device: torch.device) -> dict:
+    """GPU milliseconds per step of each kernel, from eager launches (CUDA only)."""
+    steps = 10
+    sim = Simulator(config, num_envs=num_envs, device=device, seed=0, cuda_graph=False)
+    sim.reset()
+    action = torch.zeros(sim.shape, device=device)
+    for _ in range(3):
+        sim.step(action)
+    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+    for _ in range(steps):
+        sim.step(action)
+    results = wp.timing_end()
+    per_kernel: dict[str, float] = {}
+    for result in results:
+        name = result.name.split("_cuda_kernel")[0]
+        per_kernel[name] = per_kernel.get(name, 0.0) + result.elapsed / steps
+    return dict(sorted(per_kernel.items(), key=lambda item: -item[1]))
 
 
 def main() -> None:
@@ -77,6 +98,7 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=2.0, help="timing window per size")
     parser.add_argument("--column-shape", default="ellipsoid")
     parser.add_argument("--out", type=Path, default=None, help="JSON path (default by device)")
+    parser.add_argument("--profile", action="store_true", help="per-kernel GPU time per step")
     args = parser.parse_args()
 
     device = torch.device(args.device)
@@ -91,6 +113,11 @@ def main() -> None:
         row = measure(config, n, device, args.seconds)
         rows.append(row)
         print(f"{n:>9} | {row['sim_steps_per_s']:>22,.0f} | {row['env_steps_per_s']:>24,.0f}")
+        if args.profile and device.type == "cuda":
+            row["kernel_ms_per_step"] = profile(config, n, device)
+            total = sum(row["kernel_ms_per_step"].values())
+            for name, ms in row["kernel_ms_per_step"].items():
+                print(f"{'':>9}   {name:<40} {ms:8.3f} ms/step ({100 * ms / total:4.1f}%)")
 
     out = args.out or Path(__file__).parent / "results" / f"env_throughput_{device.type}.json"
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -375,6 +375,15 @@ def substep(
                     top = column_top(model, height_prev, height, e, iy, ix, frac)
                     cx = column_center(model, ix)
                     cy = column_center(model, iy)
+                    # cheap rejection: the column lies inside the prism over its cell, and the
+                    # sphere's underside above the cell is no lower than at the cell's nearest
+                    # point to the centre
+                    a = model.column_half_width
+                    gx = wp.max(wp.abs(p[0] - cx) - a, 0.0)
+                    gy = wp.max(wp.abs(p[1] - cy) - a, 0.0)
+                    reach = r * r - gx * gx - gy * gy
+                    if reach <= 0.0 or top < p[2] - wp.sqrt(reach):
+                        continue
                     nd = wp.vec4()
                     if model.column_shape == SHAPE_BOX:
                         nd = box_contact(model, p, cx, cy, top)

@@ -162,7 +162,7 @@ class Simulator:
             )
             wp.launch(
                 wave.compute_heights,
-                dim=(n, g, g),
+                dim=(n, g),
                 inputs=[
                     m,
                     d.env_mask,
@@ -232,7 +232,7 @@ class Simulator:
         )
         wp.launch(
             wave.compute_heights,
-            dim=(n, g, g),
+            dim=(n, g),
             inputs=[
                 m,
                 d.env_mask,
