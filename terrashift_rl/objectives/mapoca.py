@@ -1,0 +1,758 @@
+"""MA-POCA: PPO with a centralised value and per-agent counterfactual baselines.
+
+Cohen et al. 2021, "On the Use and Misuse of Absorbing States in Multi-agent Reinforcement
+Learning" (arXiv 2111.05992), as Unity ML-Agents' POCA trainer implements it. A team of K agents
+shares one reward. The centralised value V(s) gives the λ-returns G; each agent's counterfactual
+baseline b_i(s, a_-i) predicts G with agent i's own action left out, so the advantage
+A_i = G - b_i credits agent i for what its own action changed. V and every b_i regress onto G.
+
+Two passes, as with torchrl's PPO losses:
+
+1. The value-estimation pass, ``loss.value_estimator(data)``, once per collected batch with the
+   parameters that collected it. It writes the returns, the old value and baselines and the
+   per-agent advantages into ``data``.
+2. ``loss(minibatch)`` for every mini-batch of every epoch: clipped surrogate, clipped value and
+   baseline regressions, entropy bonus.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass, fields
+from typing import Literal
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
+from tensordict.utils import NestedKey
+from torch import distributions as d
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import set_recurrent_mode
+from torchrl.objectives import LossModule, ValueEstimators, distance_loss
+from torchrl.objectives.value.functional import (
+    vec_generalized_advantage_estimate,
+    vec_td_lambda_return_estimate,
+)
+
+__all__ = ["MAPOCALoss", "MAPOCAValueEstimator"]
+
+_ADVANTAGE_STD_EPS = 1e-8
+"""Added to the standard deviation when normalising advantages (as ML-Agents does)."""
+
+
+class MAPOCAValueEstimator:
+    """The value-estimation pass of a :class:`MAPOCALoss`: returns, old estimates, advantages.
+
+    Built by :meth:`MAPOCALoss.make_value_estimator`; call it as ``loss.value_estimator(data)``
+    on a collected batch of shape ``[*B, T]`` (time along the dim named ``"time"``, else the
+    last one). It runs without gradients, in ``ExplorationType.DETERMINISTIC`` and in torchrl's
+    recurrent mode, and writes into ``data`` (keys as set on the loss):
+
+    * ``value`` ``[*B, T, 1]``: V(s_t), the old value the value loss is clipped against.
+    * ``value_target`` ``[*B, T, 1]``: G_t, the team λ-return from V alone.
+    * ``baseline`` ``[*B, T, K, 1]``: b_i(s_t, a_t^-i), the old baselines.
+    * ``advantage`` ``[*B, T, K, 1]``: G_t - b_i, normalised over present agents and all steps
+      if the loss asks for it; zero for absent agents.
+
+    V(s_{t+1}) comes from running the networks on ``data["next"]``, torchrl's convention: a
+    recurrent trunk reads the collected ``("next", <state>)`` there, and ``"next"`` steps are
+    marked ``is_init`` wherever the root step is, so that a hidden state never runs across an
+    episode boundary.
+
+    Attributes:
+        value_type: ``ValueEstimators.GAE`` or ``ValueEstimators.TDLambda``. They give the
+            same returns whenever ``data["next"]`` at step t is the state of step t + 1 within
+            an episode, as in collected data: the GAE value target is then the TD(λ) return.
+        gamma: discount γ.
+        lmbda: λ of the λ-returns.
+    """
+
+    def __init__(
+        self, loss: MAPOCALoss, *, value_type: ValueEstimators, gamma: float, lmbda: float
+    ) -> None:
+        self.loss = loss
+        self.value_type = value_type
+        self.gamma = gamma
+        self.lmbda = lmbda
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(value_type={self.value_type.name}, gamma={self.gamma}, "
+            f"lmbda={self.lmbda})"
+        )
+
+    @torch.no_grad()
+    def __call__(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Writes the value, value target, baselines and advantages into ``tensordict``."""
+        loss = self.loss
+        keys = loss.tensor_keys
+        if tensordict.batch_dims == 0:
+            raise ValueError("The value-estimation pass needs a time dimension in the batch.")
+        time_dim = _time_dim(tensordict)
+        root = tensordict.copy().exclude("next")
+        next_step = tensordict.get("next").copy()
+        if "is_init" in root and "is_init" in next_step:
+            next_step.set("is_init", next_step.get("is_init") | root.get("is_init"))
+
+        with set_exploration_type(ExplorationType.DETERMINISTIC), set_recurrent_mode(True):
+            state_value, baseline = loss._run_critics(root, with_baseline=True)
+            next_state_value, _ = loss._run_critics(next_step, with_baseline=False)
+
+        agent_mask = loss._agent_mask(tensordict, baseline)
+        batch_dims = tensordict.batch_dims
+        team_reward = _team_reward(
+            tensordict.get(("next", *_as_tuple(keys.reward))),
+            agent_mask,
+            batch_dims=batch_dims,
+            reduction=loss.team_reward_reduction,
+        )
+        done = _team_flag(tensordict.get(("next", *_as_tuple(keys.done))), agent_mask, batch_dims)
+        terminated = _team_flag(
+            tensordict.get(("next", *_as_tuple(keys.terminated))), agent_mask, batch_dims
+        )
+        team_reward = team_reward.to(state_value.dtype)
+
+        if self.value_type is ValueEstimators.GAE:
+            _, value_target = vec_generalized_advantage_estimate(
+                self.gamma,
+                self.lmbda,
+                state_value,
+                next_state_value,
+                team_reward,
+                done,
+                terminated,
+                time_dim=time_dim,
+            )
+        else:
+            value_target = vec_td_lambda_return_estimate(
+                self.gamma,
+                self.lmbda,
+                next_state_value,
+                team_reward,
+                done,
+                terminated,
+                time_dim=time_dim,
+            )
+
+        advantage = value_target.unsqueeze(-2) - baseline
+        if loss.normalize_advantage:
+            advantage = _masked_standardize(advantage, agent_mask)
+        if agent_mask is not None:
+            advantage = torch.where(agent_mask.unsqueeze(-1), advantage, 0.0)
+
+        tensordict.set(keys.value, state_value)
+        tensordict.set(keys.value_target, value_target)
+        tensordict.set(keys.baseline, baseline)
+        tensordict.set(keys.advantage, advantage)
+        return tensordict
+
+
+class MAPOCALoss(LossModule):
+    """MA-POCA loss: PPO with a centralised value V(s) and counterfactual baselines b_i.
+
+    The networks are three TensorDict modules that may share a trunk (the same ``nn.Module``
+    inside each): the loss counts shared parameters once and every term backpropagates into
+    them. On any tensordict the loss runs the actor's parameter module first, then the value
+    network, then the baseline network, so heads may read what the actor writes (say, the
+    per-agent embedding of a shared trunk): the trunk then runs once per pass. Self-contained
+    value and baseline networks work too.
+
+    Per mini-batch, with ρ_i = π(a_i | s) / π_old(a_i | s) per agent (joint over the action
+    dims unless ``per_dimension_ratio``), ε the clip range, and masked means over present
+    agents and samples:
+
+    * ``loss_objective = -mean(min(ρ_i A_i, clip(ρ_i, 1 - ε, 1 + ε) A_i))``, the log-ratio
+      clamped to ``±max_log_ratio`` first;
+    * ``loss_critic = value_coeff * mean(d(V, G))``, ``d`` the squared or Huber distance,
+      ``max(d(V, G), d(V_old + clip(V - V_old, ±clip_value), G))`` when clipped;
+    * ``loss_baseline = baseline_coeff * mean(d(b_i, G))``, clipped against b_old alike;
+    * ``loss_entropy = -entropy_coeff * mean(H_i)``, H_i summed over action dims.
+
+    The total loss is the sum of the four. Returns come from V alone on the team reward:
+    termination stops the bootstrap, truncation (and the end of the batch) bootstraps from
+    V(s_{t+1}), and done (terminated or truncated) stops the λ-recursion.
+
+    The team reward and the done flags may sit at the root (``[*B, 1]``) or in the group
+    (``[*B, K, 1]``), told apart by shape. A per-agent reward is reduced over the agents present
+    at the step (``team_reward_reduction``); per-agent flags are true for the team when true for
+    every present agent. Absent agents (``mask`` False) drop out of every mean, of the reward
+    and of the advantage normalisation; their action, log-prob and observation entries must
+    still be finite. The networks must keep them out of the attention sets themselves.
+
+    ``entropy_coeff``, ``value_coeff``, ``baseline_coeff``, ``clip_epsilon`` and
+    ``clip_value`` (when built with a float) are buffers that torchrl's ``LossModule`` lets a
+    schedule assign in place: ``loss.entropy_coeff = 0.001`` keeps device and dtype.
+
+    Args:
+        actor_network: the group's policy, e.g. a torchrl ``ProbabilisticActor`` writing the
+            ``action`` key [*B, K, A] and its log-prob ([*B, K] joint or [*B, K, A] per dim).
+        value_network: writes the team value at the ``value`` key, [*B, 1].
+        baseline_network: reads the group's embeddings or observations and actions, writes the
+            ``baseline`` key, [*B, K, 1].
+
+    Keyword Args:
+        clip_epsilon: PPO clip range ε of the ratio.
+        entropy_coeff: weight of the entropy bonus.
+        value_coeff: weight of the value loss.
+        baseline_coeff: weight of the baseline loss.
+        clip_value: clip range of V and b around their old estimates; ``None`` does not clip.
+        loss_critic_type: ``"l2"`` (squared error), ``"smooth_l1"`` (Huber) or ``"l1"``.
+        normalize_advantage: standardise the advantages over present agents and all steps in
+            the value-estimation pass (once per collected batch).
+        per_dimension_ratio: one ratio per action dimension, averaged in the surrogate
+            (ML-Agents); needs per-dimension log-probs. The default is the joint per-agent ratio
+            of the paper's Eq. 8.
+        max_log_ratio: clamp of the log-ratio before exponentiation; ``None`` disables it.
+        team_reward_reduction: how a per-agent reward becomes the team reward: ``"mean"`` over
+            present agents (right when every agent carries a copy of the team reward, as in
+            TerraShift) or ``"sum"`` (individual rewards, as ML-Agents adds them up).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from tensordict.nn import TensorDictModule, TensorDictSequential
+        >>> from torch import nn
+        >>> from torchrl.envs.utils import ExplorationType, set_exploration_type
+        >>> from torchrl.modules import IndependentNormal, NormalParamExtractor, ProbabilisticActor
+        >>> from torchrl.objectives import ValueEstimators
+        >>> from terrashift_rl.objectives import MAPOCALoss
+        >>> class Baseline(nn.Module):  # b_i from own embedding and the others' (e_j, a_j)
+        ...     def __init__(self, dim, action_dim):
+        ...         super().__init__()
+        ...         self.own, self.head = nn.Linear(dim, dim), nn.Linear(dim, 1)
+        ...         self.others = nn.Linear(dim + action_dim, dim)
+        ...     def forward(self, embedding, action):
+        ...         others = self.others(torch.cat([embedding, action], -1))
+        ...         others = (others.sum(-2, keepdim=True) - others) / (others.shape[-2] - 1)
+        ...         return self.head(torch.tanh(self.own(embedding) + others))
+        >>> _ = torch.manual_seed(0)
+        >>> n_envs, n_steps, n_agents, obs_dim, action_dim, dim = 2, 5, 3, 4, 2, 8
+        >>> trunk = TensorDictModule(
+        ...     nn.Sequential(nn.Linear(obs_dim, dim), nn.Tanh()),
+        ...     in_keys=[("agents", "observation")], out_keys=[("agents", "embedding")])
+        >>> policy_head = TensorDictModule(
+        ...     nn.Sequential(nn.Linear(dim, 2 * action_dim), NormalParamExtractor()),
+        ...     in_keys=[("agents", "embedding")],
+        ...     out_keys=[("agents", "loc"), ("agents", "scale")])
+        >>> actor = ProbabilisticActor(
+        ...     TensorDictSequential(trunk, policy_head),
+        ...     in_keys=[("agents", "loc"), ("agents", "scale")],
+        ...     out_keys=[("agents", "action")], distribution_class=IndependentNormal,
+        ...     return_log_prob=True)
+        >>> value = TensorDictModule(  # a head on the trunk's embeddings: the trunk runs once
+        ...     nn.Sequential(nn.Flatten(-2), nn.Linear(n_agents * dim, 1)),
+        ...     in_keys=[("agents", "embedding")], out_keys=["state_value"])
+        >>> baseline = TensorDictModule(
+        ...     Baseline(dim, action_dim), in_keys=[("agents", "embedding"), ("agents", "action")],
+        ...     out_keys=[("agents", "baseline")])
+        >>> loss = MAPOCALoss(actor, value, baseline, clip_value=0.2)
+        >>> loss = loss.make_value_estimator(ValueEstimators.GAE, gamma=0.95, lmbda=0.92)
+        >>> batch = [n_envs, n_steps]
+        >>> data = TensorDict({
+        ...     ("agents", "observation"): torch.randn(*batch, n_agents, obs_dim),
+        ...     ("next", "agents", "observation"): torch.randn(*batch, n_agents, obs_dim),
+        ...     ("next", "agents", "reward"): torch.randn(*batch, n_agents, 1),
+        ...     ("next", "done"): torch.zeros(*batch, 1, dtype=torch.bool),
+        ...     ("next", "terminated"): torch.zeros(*batch, 1, dtype=torch.bool),
+        ... }, batch_size=batch)
+        >>> with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        ...     data = actor(data)  # collection: samples actions, stores their log-probs
+        >>> data = loss.value_estimator(data)
+        >>> data["agents", "advantage"].shape, data["value_target"].shape
+        (torch.Size([2, 5, 3, 1]), torch.Size([2, 5, 1]))
+        >>> for minibatch in data.reshape(-1).split(5):
+        ...     losses = loss(minibatch)
+        ...     total = sum(v for k, v in losses.items() if k.startswith("loss_"))
+        ...     total.backward()
+        >>> sorted(losses.keys())  # doctest: +NORMALIZE_WHITESPACE
+        ['ESS', 'baseline_clip_fraction', 'clip_fraction', 'entropy', 'explained_variance',
+         'explained_variance_baseline', 'kl_approx', 'loss_baseline', 'loss_critic',
+         'loss_entropy', 'loss_objective', 'value_clip_fraction']
+        >>> loss.entropy_coeff = 0.001  # a schedule sets coefficients in place
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Tensordict keys the loss reads and writes; change them with ``set_keys``.
+
+        ``set_keys(group="team")`` moves every key that lives in the current group (first
+        element equal to ``group``) into the new one; keys passed in the same call win.
+
+        Attributes:
+            group: the agents' group, whose tensordict has batch shape [*B, K].
+            action: per-agent action [*B, K, A] (or [*B, K] for discrete actions).
+            sample_log_prob: log-prob of ``action`` at collection, [*B, K] or [*B, K, A].
+            mask: bool [*B, K] (or [*B, K, 1]), True where the agent is present. Optional:
+                absent means every agent is present.
+            reward: read under ``"next"``; the team reward [*B, 1] or per-agent [*B, K, 1].
+            done: read under ``"next"``; terminated or truncated, [*B, 1] or [*B, K, 1].
+            terminated: read under ``"next"``; [*B, 1] or [*B, K, 1]. Truncation is
+                ``done & ~terminated``, so no truncated key is read.
+            value: team value V [*B, 1], written by the value network and, as the old value,
+                by the value-estimation pass.
+            baseline: per-agent baselines [*B, K, 1], written by the baseline network and, as
+                the old baselines, by the value-estimation pass.
+            value_target: the λ-return G [*B, 1], written by the value-estimation pass.
+            advantage: G - b_i [*B, K, 1], written by the value-estimation pass.
+        """
+
+        group: str = "agents"
+        action: NestedKey = ("agents", "action")
+        sample_log_prob: NestedKey = ("agents", "action_log_prob")
+        mask: NestedKey = ("agents", "mask")
+        reward: NestedKey = ("agents", "reward")
+        done: NestedKey = "done"
+        terminated: NestedKey = "terminated"
+        value: NestedKey = "state_value"
+        baseline: NestedKey = ("agents", "baseline")
+        value_target: NestedKey = "value_target"
+        advantage: NestedKey = ("agents", "advantage")
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    default_value_estimator = ValueEstimators.GAE
+    SUPPORTED_VALUE_ESTIMATORS = (ValueEstimators.GAE, ValueEstimators.TDLambda)
+    _schedulable_buffers = frozenset(
+        {"clip_epsilon", "entropy_coeff", "value_coeff", "baseline_coeff", "clip_value"}
+    )
+
+    actor_network: ProbabilisticTensorDictSequential
+    value_network: TensorDictModule
+    baseline_network: TensorDictModule
+
+    def __init__(
+        self,
+        actor_network: ProbabilisticTensorDictSequential,
+        value_network: TensorDictModule,
+        baseline_network: TensorDictModule,
+        *,
+        clip_epsilon: float = 0.2,
+        entropy_coeff: float = 0.01,
+        value_coeff: float = 1.0,
+        baseline_coeff: float = 0.5,
+        clip_value: float | None = None,
+        loss_critic_type: Literal["l2", "smooth_l1", "l1"] = "smooth_l1",
+        normalize_advantage: bool = True,
+        per_dimension_ratio: bool = False,
+        max_log_ratio: float | None = 8.0,
+        team_reward_reduction: Literal["mean", "sum"] = "mean",
+    ) -> None:
+        if team_reward_reduction not in ("mean", "sum"):
+            raise ValueError(
+                f"team_reward_reduction must be 'mean' or 'sum', got {team_reward_reduction!r}."
+            )
+        if loss_critic_type not in ("l2", "smooth_l1", "l1"):
+            raise ValueError(
+                f"loss_critic_type must be 'l2', 'smooth_l1' or 'l1', got {loss_critic_type!r}."
+            )
+        super().__init__()
+        # Plain submodules, not torchrl's functional parameter copies: nn.Module then yields a
+        # trunk shared by the three networks once, and it trains through all of them.
+        self.actor_network = actor_network
+        self.value_network = value_network
+        self.baseline_network = baseline_network
+        device = next(self.parameters()).device
+        self.register_coeff_buffer("clip_epsilon", clip_epsilon, device=device)
+        self.register_coeff_buffer("entropy_coeff", entropy_coeff, device=device)
+        self.register_coeff_buffer("value_coeff", value_coeff, device=device)
+        self.register_coeff_buffer("baseline_coeff", baseline_coeff, device=device)
+        self.register_coeff_buffer("clip_value", clip_value, device=device)
+        self.loss_critic_type = loss_critic_type
+        self.normalize_advantage = normalize_advantage
+        self.per_dimension_ratio = per_dimension_ratio
+        self.max_log_ratio = max_log_ratio
+        self.team_reward_reduction = team_reward_reduction
+        actor_outputs = set(actor_network.det_part.out_keys)
+        self._critics_read_actor_outputs = bool(
+            (set(value_network.in_keys) | set(baseline_network.in_keys)) & actor_outputs
+        )
+        self._in_keys = None
+        log_prob_keys = actor_network.log_prob_keys
+        action_keys = actor_network.dist_sample_keys
+        if len(log_prob_keys) == 1 and len(action_keys) == 1:
+            self.set_keys(sample_log_prob=log_prob_keys[0], action=action_keys[0])
+
+    @property
+    def functional(self) -> bool:
+        return False
+
+    def set_keys(self, **kwargs: NestedKey | None) -> None:
+        """Sets tensordict keys; ``group`` moves the keys that live in the current group.
+
+        ``loss.set_keys(group="team")`` turns ``("agents", "action")`` into ``("team", "action")``
+        and likewise for every key under the old group, unless the same call sets it explicitly.
+        A value of ``None`` restores the default.
+        """
+        if "group" in kwargs:
+            new_group = kwargs["group"] or self.default_keys.group
+            old_group = self.tensor_keys.group
+            moved = {
+                field.name: (new_group, *key[1:])
+                for field in fields(self.tensor_keys)
+                if isinstance(key := getattr(self.tensor_keys, field.name), tuple)
+                and key[0] == old_group
+            }
+            kwargs = {**moved, **kwargs, "group": new_group}
+        super().set_keys(**kwargs)
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        # The estimator reads the keys from the loss itself: only the in_keys need refreshing.
+        self._in_keys = None
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        """Input keys of the loss (the estimator's included), without what the actor writes."""
+        if self._in_keys is None:
+            keys = self.tensor_keys
+            written = set(self.actor_network.det_part.out_keys)
+            value_inputs = [*self.value_network.in_keys]
+            if self._critics_read_actor_outputs:
+                value_inputs += self.actor_network.in_keys
+            value_inputs = [key for key in value_inputs if key not in written]
+            network_inputs = [
+                *self.actor_network.in_keys,
+                *value_inputs,
+                *(key for key in self.baseline_network.in_keys if key not in written),
+            ]
+            in_keys = [*network_inputs, keys.action, keys.sample_log_prob, keys.mask]
+            in_keys += [("next", *_as_tuple(key)) for key in value_inputs]
+            in_keys += [
+                ("next", *_as_tuple(key)) for key in (keys.reward, keys.done, keys.terminated)
+            ]
+            self._in_keys = list(dict.fromkeys(_flatten_key(key) for key in in_keys))
+        return self._in_keys
+
+    @in_keys.setter
+    def in_keys(self, values: list[NestedKey]) -> None:
+        self._in_keys = values
+
+    @property
+    def out_keys(self) -> list[str]:
+        """Keys of the TensorDict that ``forward`` returns."""
+        keys = [
+            "loss_objective",
+            "loss_critic",
+            "loss_baseline",
+            "loss_entropy",
+            "entropy",
+            "clip_fraction",
+            "kl_approx",
+            "ESS",
+            "explained_variance",
+            "explained_variance_baseline",
+        ]
+        if self.clip_value is not None:
+            keys += ["value_clip_fraction", "baseline_clip_fraction"]
+        return keys
+
+    def make_value_estimator(
+        self,
+        value_type: ValueEstimators | None = None,
+        *,
+        gamma: float = 0.99,
+        lmbda: float = 0.95,
+    ) -> MAPOCALoss:
+        """Sets the value-estimation pass, reachable as ``loss.value_estimator``.
+
+        Args:
+            value_type: ``ValueEstimators.GAE`` (the default) or ``ValueEstimators.TDLambda``.
+
+        Keyword Args:
+            gamma: discount γ.
+            lmbda: λ of the λ-returns.
+
+        Returns:
+            The loss, for chaining.
+        """
+        value_type = self.default_value_estimator if value_type is None else value_type
+        if value_type not in self.SUPPORTED_VALUE_ESTIMATORS:
+            supported = [estimator.name for estimator in self.SUPPORTED_VALUE_ESTIMATORS]
+            raise NotImplementedError(
+                f"{type(self).__name__} supports the value estimators {supported}, "
+                f"got {value_type!r}."
+            )
+        self.value_type = value_type
+        self._value_estimator = MAPOCAValueEstimator(
+            self, value_type=value_type, gamma=gamma, lmbda=lmbda
+        )
+        return self
+
+    def _default_value_estimator(self) -> None:
+        self.make_value_estimator()
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        """Computes the MA-POCA loss terms and detached diagnostics on a (mini-)batch.
+
+        Runs the value-estimation pass first if ``tensordict`` has no advantage yet (it then
+        uses the current parameters as the old ones, fine for a single epoch).
+
+        Args:
+            tensordict: samples with the keys of :attr:`in_keys` and those written by the
+                value-estimation pass; any batch shape.
+
+        Returns:
+            A TensorDict of scalars: ``loss_objective``, ``loss_critic``, ``loss_baseline``,
+            ``loss_entropy`` (their sum is the loss to minimise) and the diagnostics
+            ``entropy``, ``clip_fraction``, ``kl_approx``, ``ESS``, ``explained_variance``,
+            ``explained_variance_baseline`` and, with ``clip_value``,
+            ``value_clip_fraction`` and ``baseline_clip_fraction``.
+        """
+        keys = self.tensor_keys
+        tensordict = tensordict.copy()
+        if keys.advantage not in tensordict.keys(include_nested=True):
+            self.value_estimator(tensordict)
+        advantage = tensordict.get(keys.advantage).squeeze(-1)
+        value_target = tensordict.get(keys.value_target)
+        old_value = tensordict.get(keys.value)
+        old_baseline = tensordict.get(keys.baseline)
+        old_log_prob = tensordict.get(keys.sample_log_prob)
+        action = tensordict.get(keys.action)
+        if old_log_prob.requires_grad or action.requires_grad:
+            raise RuntimeError("The stored action and log-prob must not require gradients.")
+
+        dist = self.actor_network.get_dist(tensordict)
+        value, baseline = self._run_critics(tensordict, with_baseline=True, run_actor=False)
+        agent_shape = advantage.shape
+        agent_mask = self._agent_mask(tensordict, baseline)
+
+        log_prob = dist.log_prob(action)
+        joint_log_prob = _per_agent(log_prob, agent_shape, "log-prob")
+        joint_old_log_prob = _per_agent(old_log_prob, agent_shape, "stored log-prob")
+        if self.per_dimension_ratio:
+            if log_prob.shape == agent_shape or old_log_prob.shape == agent_shape:
+                raise ValueError(
+                    "per_dimension_ratio needs per-dimension log-probs [*B, K, A]; the policy "
+                    f"gives {tuple(log_prob.shape)} and the data {tuple(old_log_prob.shape)}."
+                )
+            log_ratio = log_prob - old_log_prob
+            ratio_mask = None if agent_mask is None else agent_mask.unsqueeze(-1)
+            ratio_advantage = advantage.unsqueeze(-1)
+        else:
+            log_ratio = joint_log_prob - joint_old_log_prob
+            ratio_mask = agent_mask
+            ratio_advantage = advantage
+        if self.max_log_ratio is not None:
+            log_ratio = log_ratio.clamp(-self.max_log_ratio, self.max_log_ratio)
+        ratio = log_ratio.exp()
+        clipped_ratio = ratio.clamp(1.0 - self.clip_epsilon, 1.0 + self.clip_epsilon)
+        surrogate = torch.minimum(ratio * ratio_advantage, clipped_ratio * ratio_advantage)
+        if self.per_dimension_ratio:
+            surrogate = surrogate.mean(-1)
+        loss_objective = -_masked_mean(surrogate, agent_mask)
+
+        entropy = _masked_mean(_per_agent(_entropy(dist), agent_shape, "entropy"), agent_mask)
+
+        loss_critic, value_clip_fraction = self._regression_loss(
+            value, old_value, value_target, mask=None
+        )
+        loss_baseline, baseline_clip_fraction = self._regression_loss(
+            baseline.squeeze(-1),
+            old_baseline.squeeze(-1),
+            value_target.expand_as(advantage),
+            mask=agent_mask,
+        )
+
+        out = TensorDict(
+            {
+                "loss_objective": loss_objective,
+                "loss_critic": self.value_coeff * loss_critic,
+                "loss_baseline": self.baseline_coeff * loss_baseline,
+                "loss_entropy": -self.entropy_coeff * entropy,
+            }
+        )
+        with torch.no_grad():
+            joint_log_ratio = joint_log_prob - joint_old_log_prob
+            if self.max_log_ratio is not None:
+                joint_log_ratio = joint_log_ratio.clamp(-self.max_log_ratio, self.max_log_ratio)
+            out.set("entropy", entropy.detach())
+            out.set(
+                "clip_fraction",
+                _masked_mean(((ratio - 1.0).abs() > self.clip_epsilon).to(ratio.dtype), ratio_mask),
+            )
+            # Schulman's k3 estimator of KL(pi_old || pi): unbiased, non-negative per sample.
+            out.set(
+                "kl_approx",
+                _masked_mean(joint_log_ratio.exp() - 1.0 - joint_log_ratio, agent_mask),
+            )
+            out.set("ESS", _effective_sample_fraction(joint_log_ratio, agent_mask))
+            out.set("explained_variance", _explained_variance(value_target, value, None))
+            out.set(
+                "explained_variance_baseline",
+                _explained_variance(
+                    value_target.expand_as(advantage), baseline.squeeze(-1), agent_mask
+                ),
+            )
+            if value_clip_fraction is not None:
+                out.set("value_clip_fraction", value_clip_fraction)
+                out.set("baseline_clip_fraction", baseline_clip_fraction)
+        return out
+
+    def _run_critics(
+        self, tensordict: TensorDictBase, *, with_baseline: bool, run_actor: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """V [*B, 1] and, if asked, b [*B, K, 1] on ``tensordict``, which receives the outputs."""
+        if run_actor and self._critics_read_actor_outputs:
+            self.actor_network.get_dist_params(tensordict)
+        value = self.value_network(tensordict).get(self.tensor_keys.value)
+        if value.shape != (*tensordict.batch_size, 1):
+            raise ValueError(
+                f"The value network must write {self.tensor_keys.value!r} with shape "
+                f"[*B, 1] = {[*tensordict.batch_size, 1]}, got {list(value.shape)}."
+            )
+        if not with_baseline:
+            return value, None
+        baseline = self.baseline_network(tensordict).get(self.tensor_keys.baseline)
+        if baseline.ndim != tensordict.batch_dims + 2 or baseline.shape[-1] != 1:
+            raise ValueError(
+                f"The baseline network must write {self.tensor_keys.baseline!r} with shape "
+                f"[*B, K, 1], got {list(baseline.shape)} for batch {list(tensordict.batch_size)}."
+            )
+        return value, baseline
+
+    def _agent_mask(
+        self, tensordict: TensorDictBase, baseline: torch.Tensor
+    ) -> torch.Tensor | None:
+        """The presence mask [*B, K] (bool), or None when every agent is present."""
+        mask = tensordict.get(self.tensor_keys.mask, None)
+        if mask is None:
+            return None
+        agent_shape = baseline.shape[:-1]
+        if mask.shape == (*agent_shape, 1):
+            mask = mask.squeeze(-1)
+        if mask.shape != agent_shape:
+            raise ValueError(
+                f"The agent mask {self.tensor_keys.mask!r} has shape {list(mask.shape)}, "
+                f"expected {list(agent_shape)}."
+            )
+        return mask.bool()
+
+    def _regression_loss(
+        self,
+        estimate: torch.Tensor,
+        old_estimate: torch.Tensor,
+        target: torch.Tensor,
+        *,
+        mask: torch.Tensor | None,
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Masked mean of d(estimate, target), pessimistically clipped around the old estimate."""
+        loss = distance_loss(estimate, target, self.loss_critic_type)
+        if self.clip_value is None:
+            return _masked_mean(loss, mask), None
+        change = estimate - old_estimate
+        clipped_change = change.clamp(-self.clip_value, self.clip_value)
+        clipped_loss = distance_loss(old_estimate + clipped_change, target, self.loss_critic_type)
+        with torch.no_grad():
+            clip_fraction = _masked_mean((change != clipped_change).to(loss.dtype), mask)
+        return _masked_mean(torch.maximum(loss, clipped_loss), mask), clip_fraction
+
+
+def _as_tuple(key: NestedKey) -> tuple[str, ...]:
+    return (key,) if isinstance(key, str) else tuple(key)
+
+
+def _flatten_key(key: NestedKey) -> NestedKey:
+    key = _as_tuple(key)
+    return key[0] if len(key) == 1 else key
+
+
+def _time_dim(tensordict: TensorDictBase) -> int:
+    """The batch dim marked "time", else the last one (torchrl's convention)."""
+    names = tensordict.names
+    return names.index("time") if "time" in names else tensordict.batch_dims - 1
+
+
+def _team_reward(
+    reward: torch.Tensor,
+    agent_mask: torch.Tensor | None,
+    *,
+    batch_dims: int,
+    reduction: str,
+) -> torch.Tensor:
+    """The team reward [*B, 1] from a team [*B, 1] or per-agent [*B, K, 1] reward."""
+    if reward.ndim == batch_dims + 1:
+        return reward
+    if reward.ndim != batch_dims + 2:
+        raise ValueError(f"Expected a reward of shape [*B, 1] or [*B, K, 1], got {reward.shape}.")
+    if agent_mask is not None:
+        reward = torch.where(agent_mask.unsqueeze(-1), reward, 0.0)
+    team_reward = reward.sum(-2)
+    if reduction == "mean":
+        present = (
+            reward.shape[-2]
+            if agent_mask is None
+            else agent_mask.sum(-1, keepdim=True).clamp_min(1)
+        )
+        team_reward = team_reward / present
+    return team_reward
+
+
+def _team_flag(
+    flag: torch.Tensor, agent_mask: torch.Tensor | None, batch_dims: int
+) -> torch.Tensor:
+    """A team flag [*B, 1] from a team [*B, 1] or per-agent [*B, K, 1] flag: all present agents."""
+    if flag.ndim == batch_dims + 1:
+        return flag.bool()
+    if flag.ndim != batch_dims + 2:
+        raise ValueError(f"Expected a flag of shape [*B, 1] or [*B, K, 1], got {flag.shape}.")
+    flag = flag.bool()
+    if agent_mask is not None:
+        flag = flag | ~agent_mask.unsqueeze(-1)
+    return flag.all(-2)
+
+
+def _per_agent(value: torch.Tensor, agent_shape: torch.Size, what: str) -> torch.Tensor:
+    """One value per agent [*B, K]: as is, or summed over the action dims of [*B, K, A]."""
+    if value.shape == agent_shape:
+        return value
+    if value.shape[:-1] == agent_shape:
+        return value.sum(-1)
+    raise ValueError(
+        f"Expected the {what} per agent {list(agent_shape)} or per action dim "
+        f"{[*agent_shape, 'A']}, got {list(value.shape)}."
+    )
+
+
+def _entropy(dist: d.Distribution) -> torch.Tensor:
+    """Analytic entropy, or a one-sample estimate where the distribution has none."""
+    with contextlib.suppress(NotImplementedError):
+        return dist.entropy()
+    sample = dist.rsample() if dist.has_rsample else dist.sample()
+    return -dist.log_prob(sample)
+
+
+def _masked_mean(value: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    if mask is None:
+        return value.mean()
+    # torch.where, not a product: masked entries may be inf and inf * 0 is nan.
+    return torch.where(mask, value, 0.0).sum() / mask.sum().clamp_min(1)
+
+
+def _masked_standardize(advantage: torch.Tensor, agent_mask: torch.Tensor | None) -> torch.Tensor:
+    """(A - mean) / (std + eps) over every present entry of A [*B, K, 1]."""
+    mask = None if agent_mask is None else agent_mask.unsqueeze(-1)
+    mean = _masked_mean(advantage, mask)
+    std = _masked_mean((advantage - mean).square(), mask).sqrt()
+    return (advantage - mean) / (std + _ADVANTAGE_STD_EPS)
+
+
+def _explained_variance(
+    target: torch.Tensor, prediction: torch.Tensor, mask: torch.Tensor | None
+) -> torch.Tensor:
+    """1 - Var(target - prediction) / Var(target), over the present entries."""
+    residual = target - prediction
+    residual_var = _masked_mean((residual - _masked_mean(residual, mask)).square(), mask)
+    target_var = _masked_mean((target - _masked_mean(target, mask)).square(), mask)
+    return 1.0 - residual_var / (target_var + torch.finfo(target.dtype).eps)
+
+
+def _effective_sample_fraction(log_ratio: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """Kish's effective sample size of the importance weights, over their number: in (0, 1]."""
+    if mask is None:
+        count = log_ratio.numel()
+    else:
+        # exp(-inf) = 0 drops absent agents from both sums without a host sync.
+        log_ratio = torch.where(mask, log_ratio, -torch.inf)
+        count = mask.sum().clamp_min(1)
+    log_ratio = log_ratio.flatten()
+    log_ess = 2 * log_ratio.logsumexp(0) - (2 * log_ratio).logsumexp(0)
+    return log_ess.exp() / count
