@@ -46,7 +46,8 @@ class MAPOCAValueEstimator:
     Built by :meth:`MAPOCALoss.make_value_estimator`; call it as ``loss.value_estimator(data)``
     on a collected batch of shape ``[*B, T]`` (time along the dim named ``"time"``, else the
     last one). It runs without gradients, in ``ExplorationType.DETERMINISTIC`` and in torchrl's
-    recurrent mode, and writes into ``data`` (keys as set on the loss):
+    step mode (recurrent networks read the states stored at collection), and writes into
+    ``data`` (keys as set on the loss):
 
     * ``value`` ``[*B, T, 1]``: V(s_t), the old value the value loss is clipped against.
     * ``value_target`` ``[*B, T, 1]``: G_t, the team λ-return from V alone.
@@ -55,9 +56,8 @@ class MAPOCAValueEstimator:
       if the loss asks for it; zero for absent agents.
 
     V(s_{t+1}) comes from running the networks on ``data["next"]``, torchrl's convention: a
-    recurrent trunk reads the collected ``("next", <state>)`` there, and ``"next"`` steps are
-    marked ``is_init`` wherever the root step is, so that a hidden state never runs across an
-    episode boundary.
+    recurrent network reads the collected ``("next", <state>)`` there, the state after step t,
+    so V(s_{t+1}) sees exactly the memory the policy had.
 
     Attributes:
         value_type: ``ValueEstimators.GAE`` or ``ValueEstimators.TDLambda``. They give the
@@ -91,10 +91,11 @@ class MAPOCAValueEstimator:
         time_dim = _time_dim(tensordict)
         root = tensordict.copy().exclude("next")
         next_step = tensordict.get("next").copy()
-        if "is_init" in root and "is_init" in next_step:
-            next_step.set("is_init", next_step.get("is_init") | root.get("is_init"))
 
-        with set_exploration_type(ExplorationType.DETERMINISTIC), set_recurrent_mode(True):
+        # Step mode: every element runs from the recurrent state stored with it at collection
+        # (and "next" from the state stored after the step), which reproduces the collection's
+        # hidden states exactly, also across episode boundaries.
+        with set_exploration_type(ExplorationType.DETERMINISTIC), set_recurrent_mode(False):
             state_value, baseline = loss._run_critics(root, with_baseline=True)
             next_state_value, _ = loss._run_critics(next_step, with_baseline=False)
 
