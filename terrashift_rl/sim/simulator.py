@@ -94,6 +94,28 @@ class Simulator:
             self._views[name] = wp.to_torch(array)
         return self._views[name]
 
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """Copies of every data array: the whole state of every environment."""
+        return {
+            name: self.view(name).clone()
+            for name, value in vars(self.data).items()
+            if isinstance(value, wp.array)
+        }
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        """Restores a :meth:`state_dict`; shapes must match this simulator's."""
+        missing = sorted(set(self.state_dict()) - set(state))
+        if missing:
+            raise ValueError(f"simulator state lacks {missing}")
+        for name, value in state.items():
+            target = self.view(name)
+            if value.shape != target.shape:
+                raise ValueError(
+                    f"simulator state {name!r} has shape {tuple(value.shape)}, this simulator "
+                    f"needs {tuple(target.shape)} (a different num_envs or scene size?)"
+                )
+            target.copy_(value)
+
     def seed(self, seed: int) -> None:
         """Re-seeds every environment's random stream (reset afterwards to use it)."""
         if isinstance(seed, bool) or not isinstance(seed, int):

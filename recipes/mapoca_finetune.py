@@ -1,0 +1,30 @@
+"""MA-POCA finetuning: a pretraining checkpoint's weights on a larger scene.
+
+    python recipes/mapoca_finetune.py run.pretrained=<pretrain run>/checkpoints/last.pt
+    python recipes/mapoca_finetune.py run.pretrained=last.pt run.minutes=5 train.num_envs=1024
+
+The networks are size-agnostic: the same weights run 15x15 with 8 agents and 30x30 with 16.
+Config: recipes/configs/mapoca_finetune.yaml (the pretraining config with env=finetune).
+Training itself is the pretraining recipe's loop, started from the pretrained weights with a
+fresh optimiser and fresh schedules.
+"""
+
+from __future__ import annotations
+
+import hydra
+from mapoca_pretrain import train
+from omegaconf import DictConfig
+
+
+@hydra.main(version_base=None, config_path="configs", config_name="mapoca_finetune")
+def main(cfg: DictConfig) -> None:
+    if not cfg.run.pretrained and not cfg.run.resume:
+        raise ValueError(
+            "finetuning needs run.pretrained=<pretraining checkpoint> (or run.resume=<a "
+            "finetuning checkpoint> to continue one)"
+        )
+    train(cfg)
+
+
+if __name__ == "__main__":
+    main()

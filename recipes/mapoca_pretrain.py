@@ -1,0 +1,196 @@
+"""MA-POCA pretraining on batched TerraShift environments.
+
+    python recipes/mapoca_pretrain.py                                  # the paper's scene
+    python recipes/mapoca_pretrain.py train.num_envs=1024 run.minutes=10 logger=csv
+    python recipes/mapoca_pretrain.py run.resume=<run dir>/checkpoints/last.pt
+
+Config: recipes/configs/mapoca_pretrain.yaml (groups env, model, train, loss, logger).
+Outputs (checkpoints, logs, resolved config) go to Hydra's run directory.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+import hydra
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torchrl.record.loggers import Logger
+from tqdm import tqdm
+
+from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
+from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.training import (
+    MAPOCATrainer,
+    TrainConfig,
+    iterate_until,
+    load_checkpoint,
+    make_training_env,
+    save_checkpoint,
+)
+
+
+def structured(cls: type, values: Any, group: str):
+    """Builds a config dataclass from a config group, naming unknown keys on failure."""
+    if isinstance(values, DictConfig):
+        values = OmegaConf.to_container(values, resolve=True)
+    known = {field.name for field in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ValueError(
+            f"unknown key(s) {unknown} in config group '{group}'; known: {sorted(known)}"
+        )
+    return cls(**values)
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        if torch.cuda.is_available():
+            return torch.device("cuda")
+        print("no CUDA device found: training on the CPU (slow; fine for smoke runs)")
+        return torch.device("cpu")
+    return torch.device(name)
+
+
+def make_logger(cfg: DictConfig, run_dir: Path, run_id: str | None) -> Logger | None:
+    kind = cfg.logger.kind
+    if kind == "none":
+        return None
+    if kind == "csv":
+        from torchrl.record.loggers import CSVLogger
+
+        return CSVLogger(cfg.run.name, log_dir=str(run_dir / "logs"))
+    if kind == "tensorboard":
+        from torchrl.record.loggers import TensorboardLogger
+
+        return TensorboardLogger(cfg.run.name, log_dir=str(run_dir / "logs"))
+    if kind == "wandb":
+        from torchrl.record.loggers import WandbLogger
+
+        if cfg.logger.mode not in ("offline", "online"):
+            raise ValueError(f"logger.mode must be offline or online, got {cfg.logger.mode!r}")
+        return WandbLogger(
+            cfg.run.name,
+            offline=cfg.logger.mode == "offline",
+            save_dir=str(run_dir),
+            project=cfg.logger.project,
+            id=run_id,
+            resume="allow",
+            log_env_packages=False,
+        )
+    raise ValueError(f"logger.kind must be wandb, csv, tensorboard or none, got {kind!r}")
+
+
+def checkpoint_state(trainer: MAPOCATrainer, configs: dict, run_id: str | None) -> dict:
+    return {**trainer.state_dict(), **configs, "logger_run_id": run_id}
+
+
+def train(cfg: DictConfig) -> Path:
+    """Runs the recipe; returns the path of the last checkpoint."""
+    # --- config ------------------------------------------------------------------------------
+    env_config = structured(TerraShiftConfig, cfg.env, "env")
+    model_config = structured(TerraShiftModelConfig, cfg.model, "model")
+    train_config = structured(
+        TrainConfig,
+        {**OmegaConf.to_container(cfg.train), **OmegaConf.to_container(cfg.loss)},
+        "train/loss",
+    )
+    train_config.validate()
+    device = resolve_device(cfg.run.device)
+    run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
+    checkpoints = run_dir / "checkpoints"
+    configs = {
+        "env_config": dataclasses.asdict(env_config),
+        "model_config": dataclasses.asdict(model_config),
+    }
+    resume = load_checkpoint(cfg.run.resume) if cfg.run.resume else None
+    if resume is not None:
+        for name in ("env_config", "model_config"):
+            if resume[name] != configs[name]:
+                raise ValueError(
+                    f"run.resume={cfg.run.resume} was trained with a different {name}; resume "
+                    "with the same env and model settings (or start a finetuning run)"
+                )
+        if resume["train_config"]["num_envs"] != train_config.num_envs:
+            raise ValueError(
+                f"run.resume holds {resume['train_config']['num_envs']} environments; set "
+                f"train.num_envs={resume['train_config']['num_envs']} to continue it"
+            )
+
+    # --- setup -------------------------------------------------------------------------------
+    torch.manual_seed(cfg.run.seed)
+    networks = make_terrashift_networks(model_config).to(device)
+    if cfg.run.pretrained:
+        pretrained = load_checkpoint(cfg.run.pretrained)
+        if pretrained["model_config"] != configs["model_config"]:
+            raise ValueError(
+                f"run.pretrained={cfg.run.pretrained} holds a network of another shape; use the "
+                "model settings it was trained with"
+            )
+        networks.load_state_dict(pretrained["networks"])
+    env = make_training_env(
+        env_config, networks, num_envs=train_config.num_envs, device=device, seed=cfg.run.seed
+    )
+    trainer = MAPOCATrainer(env, networks, train_config)
+    run_id = None
+    if resume is not None:
+        trainer.load_state_dict(resume)
+        run_id = resume["logger_run_id"]
+    logger = make_logger(cfg, run_dir, run_id)
+    if logger is not None and hasattr(logger, "experiment") and run_id is None:
+        run_id = getattr(logger.experiment, "id", None)
+    OmegaConf.save(cfg, run_dir / "config.yaml")
+
+    # --- train -------------------------------------------------------------------------------
+    deadline = None if cfg.run.minutes is None else time.monotonic() + 60.0 * cfg.run.minutes
+    last = checkpoints / "last.pt"
+    # a SIGTERM (a scheduler's kill) ends the run like Ctrl-C: checkpoint, then exit
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    progress = tqdm(
+        total=cfg.run.total_env_steps,
+        initial=trainer.env_steps,
+        unit="step",
+        unit_scale=True,
+        desc=cfg.run.name,
+        dynamic_ncols=True,
+    )
+    try:
+        for metrics in iterate_until(
+            trainer, total_env_steps=cfg.run.total_env_steps, deadline=deadline
+        ):
+            progress.update(trainer.env_steps - progress.n)
+            progress.set_postfix(
+                reward=f"{metrics['reward_per_decision']:+.4f}",
+                steps_per_s=f"{metrics['env_steps_per_s']:,.0f}",
+            )
+            if logger is not None:
+                for name, value in metrics.items():
+                    logger.log_scalar(name, value, step=trainer.env_steps)
+            if trainer.iteration % cfg.run.checkpoint_every == 0:
+                save_checkpoint(checkpoint_state(trainer, configs, run_id), last)
+    except KeyboardInterrupt:
+        progress.write("interrupted: saving a checkpoint to resume from")
+    finally:
+        progress.close()
+        save_checkpoint(checkpoint_state(trainer, configs, run_id), last)
+        if (
+            logger is not None
+            and hasattr(logger, "experiment")
+            and hasattr(logger.experiment, "finish")
+        ):
+            logger.experiment.finish()
+    print(f"{trainer.env_steps:,} env-steps in {trainer.iteration} iterations; checkpoint {last}")
+    return last
+
+
+@hydra.main(version_base=None, config_path="configs", config_name="mapoca_pretrain")
+def main(cfg: DictConfig) -> None:
+    train(cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,320 @@
+"""MA-POCA training on batched TerraShift environments: collect, estimate, update, checkpoint.
+
+:class:`MAPOCATrainer` owns the environment, the networks, the loss and the optimiser. One
+iteration collects ``steps_per_iteration`` decisions in every environment with the stochastic
+policy (dropout off), runs the value-estimation pass once (GAE from the centralised value,
+counterfactual baselines from the collection-time parameters), then runs ``epochs`` passes of
+shuffled mini-batches. Mini-batches are whole per-environment sequences, and the GRU runs over
+them from the state stored at each sequence start (torchrl's recurrent mode).
+
+The collection loop is written out (``env.step_and_maybe_reset``) rather than delegated to a
+collector, because a checkpoint has to hold the tensordict carried between iterations and the
+simulator state: a resumed run then continues exactly where the killed one stopped.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs import Compose, InitTracker, TransformedEnv
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import set_recurrent_mode
+from torchrl.objectives import ValueEstimators
+
+from terrashift_rl.envs import TerraShiftEnv
+from terrashift_rl.modules import TerraShiftNetworks, keys
+from terrashift_rl.objectives import MAPOCALoss
+from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.training.schedules import LinearSchedule
+
+# Collection writes these for the update's convenience; the update recomputes them, so they are
+# not kept in the batch (they would double its memory).
+_RECOMPUTED_KEYS = (
+    keys.AGENT_EMBEDDING,
+    keys.BETA_CONCENTRATION0,
+    keys.BETA_CONCENTRATION1,
+)
+
+
+@dataclass
+class TrainConfig:
+    """Hyper-parameters of :class:`MAPOCATrainer` (a Hydra structured config).
+
+    Start/end pairs are linear schedules over ``schedule_iterations`` updates.
+    """
+
+    num_envs: int = 4096
+    """Environments stepped together."""
+    steps_per_iteration: int = 32
+    """Decisions collected per environment per iteration; also the GRU's training sequence."""
+    epochs: int = 4
+    """Passes over each collected batch."""
+    minibatches: int = 4
+    """Mini-batches per epoch (each holds num_envs / minibatches whole sequences)."""
+    gamma: float = 0.95
+    """Discount."""
+    lmbda: float = 0.92
+    """GAE lambda."""
+    lr_trunk_policy: float = 1.0e-4
+    """AdamW learning rate of the trunk and the policy head at the start."""
+    lr_value_baseline: float = 2.0e-4
+    """AdamW learning rate of the value and baseline heads at the start."""
+    lr_end_factor: float = 0.1
+    """Both learning rates end at this fraction of their start."""
+    weight_decay: float = 0.01
+    """AdamW weight decay."""
+    clip_epsilon_start: float = 0.2
+    clip_epsilon_end: float = 0.1
+    entropy_coeff_start: float = 0.005
+    entropy_coeff_end: float = 0.001
+    value_clip_start: float = 0.3
+    value_clip_end: float = 0.1
+    max_grad_norm_start: float = 5.0
+    max_grad_norm_end: float = 0.5
+    schedule_iterations: int = 10_000
+    """Updates over which every schedule runs from start to end."""
+    value_coeff: float = 1.0
+    """Weight of the value loss."""
+    baseline_coeff: float = 0.5
+    """Weight of the baseline loss."""
+    bf16: bool = False
+    """Run the networks under bfloat16 autocast on CUDA."""
+
+    def validate(self) -> None:
+        """Raises ``ValueError`` for impossible combinations, saying what to change."""
+        for name in ("num_envs", "steps_per_iteration", "epochs", "minibatches"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"train.{name} must be a positive integer, got {value!r}")
+        if self.minibatches > self.num_envs:
+            raise ValueError(
+                f"train.minibatches ({self.minibatches}) exceeds train.num_envs "
+                f"({self.num_envs}): a mini-batch holds whole environment sequences, so use at "
+                f"most {self.num_envs} mini-batches or more environments"
+            )
+        if not 0.0 < self.gamma <= 1.0 or not 0.0 <= self.lmbda <= 1.0:
+            raise ValueError("train.gamma must be in (0, 1] and train.lmbda in [0, 1]")
+
+
+def make_training_env(
+    env_config: TerraShiftConfig,
+    networks: TerraShiftNetworks,
+    *,
+    num_envs: int,
+    device: torch.device,
+    seed: int,
+) -> TransformedEnv:
+    """TerraShift with the transforms the recurrent policy needs: ``is_init`` and its state."""
+    base = TerraShiftEnv(env_config, num_envs=num_envs, device=device, seed=seed)
+    primer = networks.make_tensordict_primer(env_config.num_agents)
+    return TransformedEnv(base, Compose(InitTracker(), primer))
+
+
+class MAPOCATrainer:
+    """Collects and learns; holds everything a checkpoint needs.
+
+    Args:
+        env: a batched environment from :func:`make_training_env`.
+        networks: the actor, value and baseline networks sharing one trunk.
+        config: training hyper-parameters.
+    """
+
+    def __init__(self, env: TransformedEnv, networks: TerraShiftNetworks, config: TrainConfig):
+        config.validate()
+        self.env = env
+        self.networks = networks
+        self.config = config
+        self.device = env.device
+        self.loss = MAPOCALoss(
+            networks.actor,
+            networks.value_head,
+            networks.baseline_head,
+            clip_epsilon=config.clip_epsilon_start,
+            entropy_coeff=config.entropy_coeff_start,
+            value_coeff=config.value_coeff,
+            baseline_coeff=config.baseline_coeff,
+            clip_value=config.value_clip_start,
+        )
+        self.loss.make_value_estimator(ValueEstimators.GAE, gamma=config.gamma, lmbda=config.lmbda)
+        policy_parameters = [*networks.trunk.parameters(), *networks.policy_head.parameters()]
+        critic_parameters = [
+            *networks.value_head.parameters(),
+            *networks.baseline_head.parameters(),
+        ]
+        self.optimizer = torch.optim.AdamW(
+            [
+                {"params": policy_parameters, "lr": config.lr_trunk_policy},
+                {"params": critic_parameters, "lr": config.lr_value_baseline},
+            ],
+            weight_decay=config.weight_decay,
+        )
+        self._base_lrs = [config.lr_trunk_policy, config.lr_value_baseline]
+        n = config.schedule_iterations
+        self.schedules = {
+            "lr_factor": LinearSchedule(1.0, config.lr_end_factor, n),
+            "clip_epsilon": LinearSchedule(config.clip_epsilon_start, config.clip_epsilon_end, n),
+            "entropy_coeff": LinearSchedule(
+                config.entropy_coeff_start, config.entropy_coeff_end, n
+            ),
+            "clip_value": LinearSchedule(config.value_clip_start, config.value_clip_end, n),
+            "max_grad_norm": LinearSchedule(
+                config.max_grad_norm_start, config.max_grad_norm_end, n
+            ),
+        }
+        self.iteration = 0
+        self.env_steps = 0
+        self._carry: TensorDictBase | None = None
+
+    # --- one iteration ---------------------------------------------------------------------
+    def train_iteration(self) -> dict[str, float]:
+        """Collects one batch and learns from it; returns the iteration's metrics."""
+        start = time.perf_counter()
+        data = self.collect()
+        collected = time.perf_counter()
+        metrics = self.update(data)
+        self._synchronize()
+        finished = time.perf_counter()
+        frames = data.numel()
+        self.iteration += 1
+        self.env_steps += frames
+        metrics.update(episode_metrics(data))
+        metrics["env_steps_per_s"] = frames / (finished - start)
+        metrics["collection_steps_per_s"] = frames / (collected - start)
+        metrics["update_seconds"] = finished - collected
+        return metrics
+
+    @torch.no_grad()
+    def collect(self) -> TensorDictBase:
+        """``steps_per_iteration`` decisions in every environment; returns [num_envs, T]."""
+        if self._carry is None:
+            self._carry = self.env.reset()
+        self.networks.eval()  # no dropout: the stored log-probs are the policy's own
+        td = self._carry
+        frames = []
+        with set_exploration_type(ExplorationType.RANDOM), self._autocast():
+            for _ in range(self.config.steps_per_iteration):
+                td = self.networks.actor(td)
+                step, td = self.env.step_and_maybe_reset(td)
+                frames.append(step.exclude(*_RECOMPUTED_KEYS))
+        self._carry = td.exclude(*_RECOMPUTED_KEYS)
+        return torch.stack(frames, dim=1)
+
+    def update(self, data: TensorDictBase) -> dict[str, float]:
+        """Value estimation once, then epochs of shuffled mini-batches of sequences."""
+        config = self.config
+        self._apply_schedules()
+        self.networks.eval()
+        with self._autocast():
+            self.loss.value_estimator(data)
+        self.networks.train()
+        parameters = [p for group in self.optimizer.param_groups for p in group["params"]]
+        max_grad_norm = self.schedules["max_grad_norm"](self.iteration)
+        sums: dict[str, torch.Tensor] = {}
+        count = 0
+        for _ in range(config.epochs):
+            order = torch.randperm(data.shape[0], device=self.device)
+            for index in order.chunk(config.minibatches):
+                with set_recurrent_mode(True), self._autocast():
+                    out = self.loss(data[index])
+                total = sum(value for key, value in out.items() if key.startswith("loss_"))
+                self.optimizer.zero_grad(set_to_none=True)
+                total.backward()
+                grad_norm = torch.nn.utils.clip_grad_norm_(parameters, max_grad_norm)
+                self.optimizer.step()
+                out.set("grad_norm", grad_norm)
+                out.set("loss_total", total.detach())
+                for key, value in out.items():
+                    sums[key] = sums.get(key, 0.0) + value.detach().float()
+                count += 1
+        metrics = {key: (value / count).item() for key, value in sums.items()}
+        metrics["lr_trunk_policy"] = self.optimizer.param_groups[0]["lr"]
+        metrics["clip_epsilon"] = float(self.loss.clip_epsilon)
+        metrics["entropy_coeff"] = float(self.loss.entropy_coeff)
+        return metrics
+
+    # --- checkpoints -----------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        """Everything a resumed run needs to continue exactly: weights, optimiser, counters,
+        random states, the simulator state and the tensordict carried between iterations."""
+        return {
+            "networks": self.networks.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "iteration": self.iteration,
+            "env_steps": self.env_steps,
+            "train_config": asdict(self.config),
+            "torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
+            "simulator": self.env.base_env.sim.state_dict(),
+            "carry": None if self._carry is None else self._carry.to("cpu"),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restores a :meth:`state_dict` taken from a run with the same settings."""
+        self.networks.load_state_dict(state["networks"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.iteration = state["iteration"]
+        self.env_steps = state["env_steps"]
+        torch.set_rng_state(state["torch_rng"])
+        if state["cuda_rng"] is not None and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(state["cuda_rng"])
+        self.env.base_env.sim.load_state_dict(
+            {name: value.to(self.device) for name, value in state["simulator"].items()}
+        )
+        carry = state["carry"]
+        self._carry = None if carry is None else carry.to(self.device)
+
+    # --- helpers ---------------------------------------------------------------------------
+    def _apply_schedules(self) -> None:
+        factor = self.schedules["lr_factor"](self.iteration)
+        for group, base in zip(self.optimizer.param_groups, self._base_lrs, strict=True):
+            group["lr"] = base * factor
+        for name in ("clip_epsilon", "entropy_coeff", "clip_value"):
+            setattr(self.loss, name, self.schedules[name](self.iteration))
+
+    def _autocast(self) -> contextlib.AbstractContextManager:
+        if self.config.bf16 and self.device.type == "cuda":
+            return torch.autocast("cuda", dtype=torch.bfloat16)
+        return contextlib.nullcontext()
+
+    def _synchronize(self) -> None:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+
+
+def episode_metrics(data: TensorDictBase) -> dict[str, float]:
+    """Reward per decision and, over the episodes that ended in ``data``, goals and losses.
+
+    ``success_rate`` is goals over resolved objects (goals plus out-of-bounds).
+    """
+    nxt = data.get("next")
+    # every agent holds the team reward
+    metrics = {"reward_per_decision": nxt.get(("agents", "reward"))[..., 0, 0].mean().item()}
+    done = nxt.get("done").squeeze(-1)
+    episodes = int(done.sum())
+    metrics["episodes"] = float(episodes)
+    if episodes:
+        goals = nxt.get("episode_goals").squeeze(-1)[done].float()
+        lost = nxt.get("episode_out_of_bounds").squeeze(-1)[done].float()
+        resolved = goals.sum() + lost.sum()
+        metrics["goals_per_episode"] = goals.mean().item()
+        metrics["out_of_bounds_per_episode"] = lost.mean().item()
+        metrics["success_rate"] = (goals.sum() / resolved).item() if resolved > 0 else math.nan
+    return metrics
+
+
+def iterate_until(
+    trainer: MAPOCATrainer, *, total_env_steps: int, deadline: float | None
+) -> Iterator[dict[str, float]]:
+    """Runs iterations until ``total_env_steps`` or the wall-clock ``deadline``
+    (``time.monotonic()`` value) is reached, yielding each iteration's metrics."""
+    while trainer.env_steps < total_env_steps:
+        if deadline is not None and time.monotonic() >= deadline:
+            return
+        yield trainer.train_iteration()
