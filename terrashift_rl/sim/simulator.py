@@ -184,7 +184,7 @@ class Simulator:
             )
             wp.launch(
                 wave.compute_heights,
-                dim=(n, g),
+                dim=(n, g, g),
                 inputs=[
                     m,
                     d.env_mask,
@@ -254,7 +254,7 @@ class Simulator:
         )
         wp.launch(
             wave.compute_heights,
-            dim=(n, g),
+            dim=(n, g, g),
             inputs=[
                 m,
                 d.env_mask,

@@ -86,43 +86,36 @@ def compute_heights(
     height_prev: wp.array3d(dtype=float),
     height: wp.array3d(dtype=float),
 ):
-    """Sums the wavelets at every column. Launch dim: [num_envs, G] as (env, row iy).
+    """Sums the wavelets at every column. Launch dim: [num_envs, G, G] as (env, iy, ix).
 
-    One thread fills a row of columns, so each wavelet's rotation is computed once per row
-    rather than once per column. With ``keep_velocity`` the old heights move to
-    ``height_prev`` (the columns then move between the two over the tick); otherwise both get
-    the new heights (columns at rest).
+    With ``keep_velocity`` the old heights move to ``height_prev`` (the columns then move
+    between the two over the tick); otherwise both get the new heights (columns at rest).
     """
-    e, iy = wp.tid()
+    e, iy, ix = wp.tid()
     if use_mask != 0 and not env_mask[e]:
         return
-    g = model.grid_size
-    for ix in range(g):
-        if keep_velocity != 0:
-            height_prev[e, iy, ix] = height[e, iy, ix]
-        height[e, iy, ix] = 0.0
+    g = float(model.grid_size)
+    total = float(0.0)
     for k in range(model.num_agents):
         p = position[e, k]
+        dx = float(ix) - p[0]
         dy = float(iy) - p[1]
         if model.wrap_edges != 0:
-            dy = wrap_offset(dy, float(g))
+            dx = wrap_offset(dx, g)
+            dy = wrap_offset(dy, g)
         c = wp.cos(angle[e, k])
         s = wp.sin(angle[e, k])
+        # rotate the offset by -theta into the wavelet's frame
+        xr = c * dx + s * dy
+        yr = -s * dx + c * dy
         sg = sigma[e, k]
-        ax = 0.5 / (sg[0] * sg[0])
-        ay = 0.5 / (sg[1] * sg[1])
-        amp = amplitude[e, k]
-        for ix in range(g):
-            dx = float(ix) - p[0]
-            if model.wrap_edges != 0:
-                dx = wrap_offset(dx, float(g))
-            # rotate the offset by -theta into the wavelet's frame
-            xr = c * dx + s * dy
-            yr = -s * dx + c * dy
-            height[e, iy, ix] += amp * wp.exp(-(ax * xr * xr + ay * yr * yr))
+        total += amplitude[e, k] * wp.exp(
+            -0.5 * (xr * xr / (sg[0] * sg[0]) + yr * yr / (sg[1] * sg[1]))
+        )
     hmax = model.max_column_height
-    for ix in range(g):
-        h = wp.clamp(height[e, iy, ix], -hmax, hmax)
-        height[e, iy, ix] = h
-        if keep_velocity == 0:
-            height_prev[e, iy, ix] = h
+    h = wp.clamp(total, -hmax, hmax)
+    if keep_velocity != 0:
+        height_prev[e, iy, ix] = height[e, iy, ix]
+    else:
+        height_prev[e, iy, ix] = h
+    height[e, iy, ix] = h
