@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import time
 from datetime import date
@@ -91,6 +92,17 @@ def profile(config: TerraShiftConfig, num_envs: int, device: torch.device) -> di
     return dict(sorted(per_kernel.items(), key=lambda item: -item[1]))
 
 
+def cpu_name() -> str:
+    """The processor's model name (Linux), else what ``platform`` knows."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return f"{line.split(':', 1)[1].strip()} ({os.cpu_count()} cores)"
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -103,9 +115,7 @@ def main() -> None:
 
     device = torch.device(args.device)
     config = TerraShiftConfig.preset("pretrain", column_shape=args.column_shape)
-    device_name = (
-        torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor()
-    )
+    device_name = torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_name()
     print(f"TerraShift env throughput, pretrain scene ({config.column_shape}), {device_name}")
     print(f"{'num_envs':>9} | {'simulator env-steps/s':>22} | {'TorchRL env env-steps/s':>24}")
     rows = []
