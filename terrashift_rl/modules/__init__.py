@@ -1,0 +1,33 @@
+"""TerraShift networks as TensorDict modules: shared trunk, Beta actor, MA-POCA critics.
+
+Start with :func:`make_terrashift_networks`; :mod:`terrashift_rl.modules.networks` documents
+how the trunk is shared and which keys every module reads and writes, and
+:mod:`terrashift_rl.modules.trunk` the recurrent-state conventions.
+"""
+
+from terrashift_rl.modules import keys
+from terrashift_rl.modules.config import TerraShiftModelConfig
+from terrashift_rl.modules.critics import CentralValueHead, CounterfactualBaselineHead
+from terrashift_rl.modules.distributions import ScaledBeta
+from terrashift_rl.modules.entities import AgentEncoder, ObjectEncoder
+from terrashift_rl.modules.heightmap import AdaptiveSpatialTokenizer, HeightmapEncoder
+from terrashift_rl.modules.networks import TerraShiftNetworks, make_terrashift_networks
+from terrashift_rl.modules.policy import BetaPolicyHead
+from terrashift_rl.modules.trunk import SharedEmbeddingNetwork, TerraShiftTrunk
+
+__all__ = [
+    "AdaptiveSpatialTokenizer",
+    "AgentEncoder",
+    "BetaPolicyHead",
+    "CentralValueHead",
+    "CounterfactualBaselineHead",
+    "HeightmapEncoder",
+    "ObjectEncoder",
+    "ScaledBeta",
+    "SharedEmbeddingNetwork",
+    "TerraShiftModelConfig",
+    "TerraShiftNetworks",
+    "TerraShiftTrunk",
+    "keys",
+    "make_terrashift_networks",
+]

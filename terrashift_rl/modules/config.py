@@ -1,0 +1,149 @@
+"""Sizes of the TerraShift networks, as a Hydra structured config.
+
+The defaults are the sizes of the reported pretraining run (TerraShift paper, Table 1 (b) and (c)).
+Nothing here depends on the number of agents, objects or grid columns: the same weights run the
+15 x 15 pretraining task with 8 agents and the 30 x 30 finetuning task with 16.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+__all__ = ["TerraShiftModelConfig"]
+
+
+@dataclass
+class TerraShiftModelConfig:
+    """Network sizes; the defaults reproduce Table 1 of the TerraShift paper.
+
+    Usable as a Hydra structured config (``OmegaConf.structured(TerraShiftModelConfig)``).
+
+    Examples:
+        >>> config = TerraShiftModelConfig()
+        >>> config.embed_dim, config.trunk_layers, config.gru_layers
+        (128, 3, 2)
+        >>> TerraShiftModelConfig.small().embed_dim
+        32
+    """
+
+    embed_dim: int = 128
+    """Width d of every token and agent embedding."""
+    num_heads: int = 8
+    """Attention heads in the trunk, the Swin stages and the critic heads."""
+    dropout: float = 0.05
+    """Dropout probability; applied only in passes that will be backpropagated (see ``layers``)."""
+
+    agent_observation_dim: int = 9
+    """Features per agent: wavelet [x, y, theta, A, sigma_x, sigma_y, v_x, v_y, omega]."""
+    agent_hidden_dim: int = 128
+    """Hidden width of the agent MLP (9 -> 128 -> d)."""
+    agent_id_code: bool = True
+    """Add a sinusoidal agent-index code; breaks permutation equivariance over agents."""
+    agent_id_dim: int = 16
+    """Width of the sinusoidal agent-index code before its projection to d."""
+
+    object_feature_dim: int = 9
+    """Features per object slot: position, goal position, velocity."""
+    object_hidden_dim: int = 64
+    """Hidden width of the per-slot object MLP (9 -> 64 -> d)."""
+
+    heightmap_channels: int = 1
+    """Channels of the heightmap observation (coordinate channels are added on top)."""
+    cnn_channels: list[int] = field(default_factory=lambda: [16, 32, 32])
+    """Output channels of the CNN stem's convolutions."""
+    cnn_kernels: list[int] = field(default_factory=lambda: [5, 3, 3])
+    """Kernel sizes of the CNN stem's convolutions."""
+    cnn_strides: list[int] = field(default_factory=lambda: [2, 2, 1])
+    """Strides of the CNN stem's convolutions."""
+    cnn_groups: list[int] = field(default_factory=lambda: [4, 8, 8])
+    """GroupNorm groups after each convolution of the CNN stem."""
+    heightmap_cells_per_token: int = 8
+    """Heightmap cells per pooled token along each side: a 32 x 32 map pools to 4 x 4 tokens,
+    64 x 64 to 8 x 8 (rounded up to a multiple of the Swin windows and the patch merge)."""
+    swin_windows: list[int] = field(default_factory=lambda: [2, 4])
+    """Window side of each windowed self-attention stage; a 2 x 2 patch merge follows the last."""
+    tokenizer_base_tokens: int = 12
+    """Spatial-token budget when the heightmap yields exactly this many candidate tokens."""
+    tokenizer_min_tokens: int = 8
+    """Lower bound of the spatial-token budget (never more than the candidates)."""
+    tokenizer_max_tokens: int = 16
+    """Upper bound of the spatial-token budget, whatever the heightmap size."""
+    tokenizer_hidden_dim: int = 64
+    """Hidden width of the tokenizer's importance scorer."""
+
+    trunk_layers: int = 3
+    """Layers of [parallel cross-attention, agent self-attention, feed-forward]."""
+    ffn_dim: int = 384
+    """Hidden width of every feed-forward block (trunk and Swin stages)."""
+    output_hidden_dim: int = 192
+    """Hidden width of the trunk's output MLP (d -> 192 -> d)."""
+    gru_layers: int = 2
+    """Stacked GRU layers of the agent memory (hidden size d)."""
+
+    policy_hidden_dim: int = 192
+    """Hidden width of the shared policy MLP (d -> 192 -> 192)."""
+    min_concentration: float = 1.01
+    """Lower bound of both Beta concentrations; above 1 the density is unimodal and finite."""
+    critic_hidden_dim: int = 128
+    """Hidden width of the value and baseline MLPs."""
+
+    def __post_init__(self) -> None:
+        stem_lengths = {
+            len(self.cnn_channels),
+            len(self.cnn_kernels),
+            len(self.cnn_strides),
+            len(self.cnn_groups),
+        }
+        if len(stem_lengths) != 1:
+            raise ValueError(
+                "cnn_channels, cnn_kernels, cnn_strides and cnn_groups must have the same length."
+            )
+        for channels, groups in zip(self.cnn_channels, self.cnn_groups, strict=True):
+            if channels % groups:
+                raise ValueError(f"cnn_groups {groups} does not divide cnn_channels {channels}.")
+        if self.embed_dim % self.num_heads:
+            raise ValueError(f"num_heads {self.num_heads} does not divide embed_dim.")
+        if self.embed_dim % 4:
+            raise ValueError("embed_dim must be a multiple of 4 for the 2-D sin-cos code.")
+        if self.agent_id_dim % 2:
+            raise ValueError("agent_id_dim must be even (sine and cosine halves).")
+        if not self.swin_windows:
+            raise ValueError("swin_windows needs at least one stage.")
+        if not (
+            1
+            <= self.tokenizer_min_tokens
+            <= self.tokenizer_base_tokens
+            <= self.tokenizer_max_tokens
+        ):
+            raise ValueError(
+                "tokenizer budget must satisfy 1 <= min_tokens <= base_tokens <= max_tokens."
+            )
+        if self.gru_layers < 1:
+            raise ValueError("gru_layers must be at least 1.")
+        if self.min_concentration <= 0:
+            raise ValueError("min_concentration must be positive.")
+
+    @property
+    def token_grid_multiple(self) -> int:
+        """The pooled token grid's side is a multiple of this (every window and the 2x2 merge)."""
+        return math.lcm(2, *self.swin_windows)
+
+    @classmethod
+    def small(cls) -> TerraShiftModelConfig:
+        """A narrow, shallow preset for CPU tests; same structure, same budgets."""
+        return cls(
+            embed_dim=32,
+            num_heads=4,
+            agent_hidden_dim=32,
+            agent_id_dim=8,
+            object_hidden_dim=16,
+            cnn_channels=[4, 8, 8],
+            cnn_groups=[2, 4, 4],
+            trunk_layers=2,
+            ffn_dim=64,
+            output_hidden_dim=48,
+            policy_hidden_dim=48,
+            critic_hidden_dim=32,
+            tokenizer_hidden_dim=16,
+        )
