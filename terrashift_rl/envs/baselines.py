@@ -1,0 +1,242 @@
+"""Baseline policies for TerraShift: random, zero and a scripted heuristic.
+
+Each policy is a plain callable ``policy(td) -> td`` that reads the observation keys of a
+:class:`~terrashift_rl.envs.TerraShiftEnv` tensordict and writes ``("agents", "action")``
+([*batch, K, 6] in [-1, 1], float32, on the tensordict's device). None touches the simulator;
+they work for any batch shape (one environment, a batch, a batch of time steps) and any device.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict import TensorDictBase
+
+from terrashift_rl.sim.config import TerraShiftConfig
+from terrashift_rl.sim.types import ACTION_DIM
+
+OBSERVATION_KEY = ("agents", "observation")
+ACTION_KEY = ("agents", "action")
+
+__all__ = ["RandomPolicy", "ScriptedHeuristicPolicy", "ZeroPolicy"]
+
+
+def _action_shape(td: TensorDictBase) -> torch.Size:
+    """[*batch, K, ACTION_DIM], from the agents' observation."""
+    return td.get(OBSERVATION_KEY).shape[:-1] + (ACTION_DIM,)
+
+
+class RandomPolicy:
+    """Actions drawn uniformly from [-1, 1], independently per environment, agent and dimension.
+
+    Args:
+        seed: seed of the policy's own generator (one per device, created on first use), so a
+            seeded evaluation is reproducible and leaves torch's global generator alone; None
+            draws from torch's global generator.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({("agents", "observation"): torch.zeros(2, 8, 9)}, batch_size=[2])
+        >>> action = RandomPolicy(seed=0)(td)["agents", "action"]
+        >>> action.shape, bool(action.abs().max() <= 1)
+        (torch.Size([2, 8, 6]), True)
+    """
+
+    def __init__(self, *, seed: int | None = None):
+        self.seed = seed
+        self._generators: dict[torch.device, torch.Generator] = {}
+
+    def _generator(self, device: torch.device) -> torch.Generator | None:
+        if self.seed is None:
+            return None
+        if device not in self._generators:
+            self._generators[device] = torch.Generator(device=device).manual_seed(self.seed)
+        return self._generators[device]
+
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        observation = td.get(OBSERVATION_KEY)
+        device = observation.device
+        u = torch.rand(_action_shape(td), generator=self._generator(device), device=device)
+        td.set(ACTION_KEY, u * 2.0 - 1.0)
+        return td
+
+
+class ZeroPolicy:
+    """All-zero actions: every wavelet keeps its initial velocity, spin, amplitude and width.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({("agents", "observation"): torch.zeros(3, 8, 9)}, batch_size=[3])
+        >>> ZeroPolicy()(td)["agents", "action"].abs().sum().item()
+        0.0
+    """
+
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        observation = td.get(OBSERVATION_KEY)
+        td.set(ACTION_KEY, torch.zeros(_action_shape(td), device=observation.device))
+        return td
+
+
+class ScriptedHeuristicPolicy:
+    """Pushes each sphere towards its goal with a Gaussian bump placed just behind it.
+
+    The policy reads only the observation (``("agents", "observation")``, ``"objects"``,
+    ``"objects_mask"``) and the scene constants of ``config``; it never touches the simulator.
+
+    **Assignment.** Agent ``k`` serves object slot ``k % M``. If that slot holds no sphere
+    (not spawned yet, or already resolved), the agent serves the ``(k mod n)``-th active
+    sphere instead (n active spheres), so every agent works while any sphere is in play. With
+    no active sphere an agent stops and flattens its wavelet.
+
+    **Where to stand.** Sphere and goal positions are converted from metres to cell units, the
+    wavelet's own coordinates (column ``ix`` is centred at ``x = (ix + 0.5) cell - 0.5 *
+    platform`` m and a wavelet at ``x = ix`` sits on it). With ``u`` the unit vector from the
+    sphere to its goal, the agent's target is ``sphere - offset * u``: a bump that far behind
+    the sphere, on the side away from its goal, tilts the columns under the sphere towards the
+    goal, and the sphere rolls down the bump's flank. Serving agents beyond the first of a
+    sphere (``k >= M``) stand ``extra_offset`` cells further back, widening the slope.
+
+    **How to get there.** The wavelet position is second-order: an action changes its velocity
+    by ``velocity_gain * wave_step`` per physics tick. A PD-like law sets a desired velocity
+    ``v* = sphere velocity + position_gain * e``, where ``e`` is the torus-wrapped offset from
+    the wavelet to its target (the grid wraps) and the sphere's velocity (converted to cells
+    per wave step) is a feed-forward term that keeps the bump behind a rolling sphere;
+    ``v*`` is clipped to the speed limit. The action is the velocity error divided by the
+    change one decision of full action produces (``velocity_gain * wave_step * action_repeat``),
+    clipped to [-1, 1]: a proportional velocity loop on top of the position loop, that is, PD
+    on the position.
+
+    **Shape.** The same rule drives the other parameters to set points: amplitude towards
+    ``amplitude * max_amplitude`` once the wavelet is within ``engage_distance`` cells of its
+    target (towards zero while it travels, so it does not bump spheres on its way), both widths
+    towards ``sigma`` cells, and the spin towards zero.
+
+    Args:
+        config: the scene's config (grid, platform, gains, limits, timing).
+        offset: distance [cells] from the sphere centre back to the bump centre (2 cells
+            worked best on the pretraining scene: 1 barely tilts the sphere, 2.5 often misses it).
+        extra_offset: additional distance [cells] for the second and later agents of a sphere.
+        amplitude: set-point amplitude as a fraction of ``max_amplitude``, in (0, 1].
+        sigma: set-point width [cells], clipped to [sigma_min, sigma_max].
+        position_gain: desired velocity per cell of position error [1 / wave step].
+        engage_distance: distance [cells] to the target below which the bump is raised.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> cfg = TerraShiftConfig(num_agents=1, num_objects=1, num_goals=1)
+        >>> policy = ScriptedHeuristicPolicy(cfg)
+        >>> agent = torch.zeros(1, 1, 9)  # wavelet at the grid centre, at rest
+        >>> objects = torch.zeros(1, 1, 9)
+        >>> objects[0, 0, 3] = -0.8  # sphere at the centre, goal far to the left (-x)
+        >>> td = TensorDict({("agents", "observation"): agent, "objects": objects,
+        ...                  "objects_mask": torch.ones(1, 1, dtype=torch.bool)}, batch_size=[1])
+        >>> policy(td)["agents", "action"][0, 0, 0].item() > 0  # move right, behind the sphere
+        True
+    """
+
+    def __init__(
+        self,
+        config: TerraShiftConfig,
+        *,
+        offset: float = 2.0,
+        extra_offset: float = 0.5,
+        amplitude: float = 1.0,
+        sigma: float = 1.0,
+        position_gain: float = 1.0,
+        engage_distance: float = 1.5,
+    ):
+        if not 0.0 < amplitude <= 1.0:
+            raise ValueError(f"amplitude must be in (0, 1], got {amplitude}")
+        for name, value in (
+            ("offset", offset),
+            ("extra_offset", extra_offset),
+            ("position_gain", position_gain),
+            ("engage_distance", engage_distance),
+        ):
+            if not math.isfinite(value) or value < 0.0:
+                raise ValueError(f"{name} must be a finite number >= 0, got {value}")
+        self.config = config
+        self.offset = offset
+        self.extra_offset = extra_offset
+        self.amplitude = amplitude
+        self.sigma = min(max(sigma, config.sigma_min), config.sigma_max)
+        self.position_gain = position_gain
+        self.engage_distance = engage_distance
+
+    # --- observation decoding -------------------------------------------------------------
+    def _metres_to_cells(self, normalised: torch.Tensor) -> torch.Tensor:
+        """Object x or y from the observation (metres over the half platform) to cell units."""
+        cfg = self.config
+        half = 0.5 * cfg.platform_size
+        return (normalised * half + half) / cfg.cell_size - 0.5
+
+    def _assign(self, mask: torch.Tensor, num_agents: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Object slot of every agent, [B, K] (long), and whether it has one, [B, K] (bool)."""
+        b, m = mask.shape
+        agents = torch.arange(num_agents, device=mask.device)
+        preferred = (agents % m).expand(b, num_agents)
+        count = mask.sum(-1, keepdim=True)  # [B, 1]
+        rank = mask.long().cumsum(-1) - 1  # rank of each active slot among the active ones
+        wanted = agents.unsqueeze(0) % count.clamp(min=1)  # [B, K]
+        match = mask.unsqueeze(1) & (rank.unsqueeze(1) == wanted.unsqueeze(-1))  # [B, K, M]
+        fallback = match.long().argmax(-1)
+        slot = torch.where(mask.gather(-1, preferred), preferred, fallback)
+        return slot, (count > 0).expand(b, num_agents)
+
+    # --- policy ---------------------------------------------------------------------------
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        cfg = self.config
+        observation = td.get(OBSERVATION_KEY)
+        batch = observation.shape[:-2]
+        k = observation.shape[-2]
+        agent = observation.reshape(-1, k, observation.shape[-1]).float()
+        objects = td.get("objects").reshape(agent.shape[0], -1, td.get("objects").shape[-1])
+        mask = td.get("objects_mask").reshape(agent.shape[0], -1).bool()
+        g = float(cfg.grid_size)
+
+        # wavelet state in physical units (cells, cells / wave step, m, rad / wave step)
+        position = (agent[..., 0:2] + 1.0) * (0.5 * g)
+        amplitude = agent[..., 3] * cfg.max_amplitude
+        widths = (agent[..., 4:6] + 1.0) * (0.5 * (cfg.sigma_max - cfg.sigma_min)) + cfg.sigma_min
+        velocity = agent[..., 6:8] * cfg.max_velocity
+        spin = agent[..., 8] * cfg.max_angular_velocity
+
+        # each agent's sphere and goal, in cells; sphere velocity in cells per wave step
+        slot, engaged = self._assign(mask, k)
+        mine = objects.float().gather(1, slot.unsqueeze(-1).expand(-1, -1, objects.shape[-1]))
+        sphere = self._metres_to_cells(mine[..., 0:2])
+        goal = self._metres_to_cells(mine[..., 3:5])
+        cells_per_second = mine[..., 6:8] * cfg.max_object_speed / cfg.cell_size
+        sphere_velocity = cells_per_second / (cfg.wave_step * cfg.physics_hz)
+
+        # target: behind the sphere, on the side away from its goal
+        to_goal = goal - sphere
+        direction = to_goal / to_goal.norm(dim=-1, keepdim=True).clamp(min=1e-6)
+        back = self.offset + self.extra_offset * (
+            torch.arange(k, device=agent.device) >= mask.shape[-1]
+        )
+        target = sphere - back.unsqueeze(-1) * direction
+        error = target - position
+        if cfg.wrap_edges:
+            error = error - g * torch.floor(error / g + 0.5)
+        distance = error.norm(dim=-1)
+
+        # PD-like law: desired velocity from the position error, action from the velocity error
+        desired = sphere_velocity + self.position_gain * error
+        desired = torch.where(engaged.unsqueeze(-1), desired, torch.zeros_like(desired))
+        desired = desired.clamp(-cfg.max_velocity, cfg.max_velocity)
+        per_decision = cfg.wave_step * cfg.action_repeat
+        move = (desired - velocity) / (cfg.velocity_gain * per_decision)
+
+        # shape set points: a positive bump of width sigma, no spin; flat while travelling
+        close = engaged & (distance <= self.engage_distance)
+        amplitude_target = torch.where(close, self.amplitude * cfg.max_amplitude, 0.0)
+        grow = (amplitude_target - amplitude) / (cfg.amplitude_gain * per_decision)
+        widen = (self.sigma - widths) / (cfg.sigma_gain * per_decision)
+        turn = -spin / (cfg.angular_velocity_gain * per_decision)
+
+        action = torch.cat([move, turn.unsqueeze(-1), grow.unsqueeze(-1), widen], dim=-1)
+        action = action.clamp(-1.0, 1.0).to(torch.float32)
+        td.set(ACTION_KEY, action.reshape(*batch, k, ACTION_DIM))
+        return td

@@ -1,0 +1,172 @@
+"""Evaluation of a policy over one episode per environment, and the baseline policies' scores."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs import EnvBase
+from tqdm.auto import tqdm
+
+from terrashift_rl.envs.baselines import RandomPolicy, ScriptedHeuristicPolicy, ZeroPolicy
+from terrashift_rl.envs.terrashift import TerraShiftEnv
+from terrashift_rl.sim.config import TerraShiftConfig
+
+Policy = Callable[[TensorDictBase], TensorDictBase]
+"""Anything that writes ``("agents", "action")`` into the tensordict it is given."""
+
+__all__ = ["Policy", "evaluate", "evaluate_baselines"]
+
+
+def _scene_config(env: EnvBase) -> TerraShiftConfig:
+    """The TerraShift config of ``env`` or of the base env a TransformedEnv wraps."""
+    base = getattr(env, "base_env", env)
+    config = getattr(base, "config", None)
+    if not isinstance(config, TerraShiftConfig):
+        raise ValueError(
+            f"evaluate needs a TerraShiftEnv (or a TransformedEnv around one), got "
+            f"{type(env).__name__}"
+        )
+    return config
+
+
+def evaluate(
+    env: EnvBase,
+    policy: Policy,
+    *,
+    episodes: int | None = None,
+    progress: bool = True,
+) -> dict[str, float]:
+    """Runs exactly one episode in every environment of ``env`` and scores ``policy``.
+
+    The environments are reset once, then stepped together with ``env.step_and_maybe_reset``
+    until each has finished its first episode (``done``: every sphere resolved, or the step
+    limit). Environments that finish early keep stepping with the rest (they are reset
+    automatically), but their later steps are ignored. Runs under ``torch.no_grad``.
+
+    Args:
+        env: a batched :class:`~terrashift_rl.envs.TerraShiftEnv` in evaluation mode
+            (``respawn=False``), or a TorchRL ``TransformedEnv`` wrapping one.
+        policy: callable writing ``("agents", "action")`` into the tensordict it receives.
+        episodes: number of episodes; must equal ``env``'s number of environments if given.
+        progress: show a tqdm bar over the decisions.
+
+    Returns:
+        ``episodes``; ``success_rate``, goals over resolved objects (goals plus out of bounds;
+        0 if nothing was resolved); ``goal_fraction``, goals over ``episodes * num_objects``;
+        ``goals_per_episode``; ``out_of_bounds_per_episode``; ``mean_reward_per_decision``, the
+        team reward averaged over each environment's decisions of its episode, then over the
+        environments; ``mean_episode_length`` in decisions; ``terminated_fraction``, the share of
+        episodes that ended with every sphere resolved rather than at the step limit.
+
+    Raises:
+        ValueError: if ``env`` is not in evaluation mode, is not batched, or ``episodes``
+            differs from its number of environments.
+    """
+    config = _scene_config(env)
+    if config.respawn:
+        raise ValueError(
+            "evaluate needs an environment in evaluation mode: build it with respawn=False "
+            "(e.g. TerraShiftEnv(config, num_envs=..., respawn=False)) so episodes terminate"
+        )
+    if len(env.batch_size) != 1:
+        raise ValueError(f"evaluate needs a batch of environments, got batch {env.batch_size}")
+    num_envs = env.batch_size[0]
+    if episodes is not None and episodes != num_envs:
+        raise ValueError(
+            f"evaluate runs one episode per environment: episodes ({episodes}) must equal the "
+            f"number of environments ({num_envs})"
+        )
+    device = env.device
+    running = torch.ones(num_envs, dtype=torch.bool, device=device)
+    length = torch.zeros(num_envs, dtype=torch.long, device=device)
+    reward_sum = torch.zeros(num_envs, dtype=torch.float64, device=device)
+    goals = torch.zeros(num_envs, dtype=torch.long, device=device)
+    lost = torch.zeros(num_envs, dtype=torch.long, device=device)
+    terminated = torch.zeros(num_envs, dtype=torch.bool, device=device)
+
+    bar = tqdm(total=num_envs, desc="evaluate", unit="episode", disable=not progress)
+    with torch.no_grad():
+        td = env.reset()
+        # every environment ends within max_episode_steps decisions (truncation)
+        for _ in range(config.max_episode_steps):
+            td = policy(td)
+            out, td = env.step_and_maybe_reset(td)
+            nxt = out.get("next")
+            reward = nxt.get(("agents", "reward"))[..., 0, 0]
+            done = nxt.get("done").reshape(num_envs)
+            length += running.long()
+            reward_sum += torch.where(running, reward.double(), 0.0)
+            finished = running & done
+            goals = torch.where(finished, nxt.get("episode_goals").reshape(num_envs), goals)
+            lost = torch.where(finished, nxt.get("episode_out_of_bounds").reshape(num_envs), lost)
+            terminated |= finished & nxt.get("terminated").reshape(num_envs)
+            running &= ~done
+            left = int(running.sum())
+            bar.update(num_envs - left - bar.n)
+            if left == 0:
+                break
+    bar.close()
+    if running.any():  # cannot happen: truncation ends every episode at the step limit
+        raise RuntimeError(
+            f"{int(running.sum())} environment(s) did not finish within max_episode_steps"
+        )
+
+    total_goals = float(goals.sum())
+    total_lost = float(lost.sum())
+    resolved = total_goals + total_lost
+    return {
+        "episodes": float(num_envs),
+        "success_rate": total_goals / resolved if resolved > 0 else 0.0,
+        "goal_fraction": total_goals / (num_envs * config.num_objects),
+        "goals_per_episode": total_goals / num_envs,
+        "out_of_bounds_per_episode": total_lost / num_envs,
+        "mean_reward_per_decision": float((reward_sum / length.double()).mean()),
+        "mean_episode_length": float(length.double().mean()),
+        "terminated_fraction": float(terminated.double().mean()),
+    }
+
+
+def evaluate_baselines(
+    config: TerraShiftConfig,
+    *,
+    num_envs: int,
+    device: str | torch.device = "cpu",
+    seed: int = 0,
+    progress: bool = False,
+) -> dict[str, dict[str, float]]:
+    """Scores the random, zero and scripted heuristic policies in evaluation mode.
+
+    Each policy gets a fresh environment built from ``config`` with ``respawn=False`` and the
+    same ``seed``, so all three face the same initial scenes (goals, first sphere, wavelets);
+    the random policy's generator is seeded with ``seed`` too.
+
+    Args:
+        config: the scene; ``respawn`` is overridden to False.
+        num_envs: environments, hence episodes, per policy.
+        device: where to simulate.
+        seed: seed of the environments and of the random policy.
+        progress: show a tqdm bar per policy.
+
+    Returns:
+        ``{"random": metrics, "zero": metrics, "heuristic": metrics}``, each as returned by
+        :func:`evaluate`.
+
+    Example:
+        >>> cfg = TerraShiftConfig(max_episode_steps=8)
+        >>> scores = evaluate_baselines(cfg, num_envs=2, seed=0)
+        >>> sorted(scores), scores["zero"]["episodes"]
+        (['heuristic', 'random', 'zero'], 2.0)
+    """
+    config = config.replace(respawn=False)
+    policies: dict[str, Policy] = {
+        "random": RandomPolicy(seed=seed),
+        "zero": ZeroPolicy(),
+        "heuristic": ScriptedHeuristicPolicy(config),
+    }
+    results = {}
+    for name, policy in policies.items():
+        env = TerraShiftEnv(config, num_envs=num_envs, device=device, seed=seed)
+        results[name] = evaluate(env, policy, progress=progress)
+    return results

@@ -1,0 +1,182 @@
+"""Baseline policies: action shapes and ranges, and the heuristic's steering on posed scenes."""
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from terrashift_rl.envs import GROUP, TerraShiftEnv
+from terrashift_rl.envs.baselines import RandomPolicy, ScriptedHeuristicPolicy, ZeroPolicy
+from terrashift_rl.sim import TerraShiftConfig
+
+CFG = TerraShiftConfig(max_episode_steps=64)
+G = CFG.grid_size
+VX, VY, OMEGA, AMP, SX, SY = range(6)
+
+
+def observation_td(batch: tuple[int, ...], k: int = 8, m: int = 4) -> TensorDict:
+    return TensorDict(
+        {
+            (GROUP, "observation"): torch.zeros(*batch, k, 9),
+            "objects": torch.zeros(*batch, m, 9),
+            "objects_mask": torch.ones(*batch, m, dtype=torch.bool),
+        },
+        batch_size=batch,
+    )
+
+
+def cell_to_metres(cell: float, config: TerraShiftConfig = CFG) -> float:
+    """Centre of column ``cell`` [m]."""
+    return (cell + 0.5) * config.cell_size - 0.5 * config.platform_size
+
+
+def posed_scene(
+    agent_cells: list[tuple[float, float]],
+    spheres: list[tuple[float, float] | None],
+    goals: list[tuple[float, float]],
+    config: TerraShiftConfig,
+) -> TensorDict:
+    """One environment: wavelets at rest at ``agent_cells`` (amplitude 0, width 1 cell), spheres
+    at rest at the given cells (None: empty slot), goals at the given cells."""
+    k, m = len(agent_cells), len(spheres)
+    agents = torch.zeros(1, k, 9)
+    for i, (x, y) in enumerate(agent_cells):
+        agents[0, i, 0] = 2 * x / config.grid_size - 1
+        agents[0, i, 1] = 2 * y / config.grid_size - 1
+    sigma = 2 * (1.0 - config.sigma_min) / (config.sigma_max - config.sigma_min) - 1
+    agents[0, :, 4:6] = sigma
+    objects = torch.zeros(1, m, 9)
+    mask = torch.zeros(1, m, dtype=torch.bool)
+    half = 0.5 * config.platform_size
+    for j, (sphere, goal) in enumerate(zip(spheres, goals, strict=True)):
+        if sphere is None:
+            continue
+        mask[0, j] = True
+        objects[0, j, 0] = cell_to_metres(sphere[0], config) / half
+        objects[0, j, 1] = cell_to_metres(sphere[1], config) / half
+        objects[0, j, 3] = cell_to_metres(goal[0], config) / half
+        objects[0, j, 4] = cell_to_metres(goal[1], config) / half
+    return TensorDict(
+        {(GROUP, "observation"): agents, "objects": objects, "objects_mask": mask},
+        batch_size=[1],
+    )
+
+
+def one_object_config(num_agents: int = 1, num_objects: int = 1) -> TerraShiftConfig:
+    return TerraShiftConfig(num_agents=num_agents, num_objects=num_objects, num_goals=1)
+
+
+@pytest.mark.parametrize("batch", [(3,), (2, 5), ()])
+@pytest.mark.parametrize(
+    "make", [lambda: RandomPolicy(seed=0), ZeroPolicy, lambda: ScriptedHeuristicPolicy(CFG)]
+)
+def test_actions_have_the_action_shape_and_range(make, batch):
+    td = observation_td(batch)
+    td["objects"].uniform_(-0.9, 0.9)
+    td[GROUP, "observation"].uniform_(-1, 1)
+    action = make()(td)[GROUP, "action"]
+    assert action.shape == (*batch, 8, 6)
+    assert action.dtype == torch.float32
+    assert torch.isfinite(action).all()
+    assert action.abs().max() <= 1.0
+
+
+@pytest.mark.parametrize(
+    "make", [lambda: RandomPolicy(seed=0), ZeroPolicy, lambda: ScriptedHeuristicPolicy(CFG)]
+)
+def test_policies_drive_a_real_environment(make):
+    env = TerraShiftEnv(CFG, num_envs=3, seed=0)
+    data = env.rollout(5, make())
+    assert data[GROUP, "action"].shape == (3, 5, 8, 6)
+    assert data[GROUP, "action"].abs().max() <= 1.0
+    # a batch of time steps is a batch too
+    frames = make()(data.exclude((GROUP, "action")))
+    assert frames[GROUP, "action"].shape == (3, 5, 8, 6)
+
+
+def test_random_policy_is_uniform_and_reproducible():
+    td = observation_td((64,))
+    a = RandomPolicy(seed=1)(td.clone())[GROUP, "action"]
+    b = RandomPolicy(seed=1)(td.clone())[GROUP, "action"]
+    c = RandomPolicy(seed=2)(td.clone())[GROUP, "action"]
+    assert torch.equal(a, b)
+    assert not torch.equal(a, c)
+    policy = RandomPolicy(seed=1)
+    policy(td)
+    assert not torch.equal(policy(td)[GROUP, "action"], a)  # the stream advances
+    assert a.min() >= -1 and a.max() <= 1
+    assert abs(a.mean().item()) < 0.05  # 3072 draws: U[-1, 1] has mean 0, sd 0.58 / sqrt(n)
+    assert a.min() < -0.99 and a.max() > 0.99
+
+
+def test_zero_policy_is_all_zero():
+    action = ZeroPolicy()(observation_td((4,)))[GROUP, "action"]
+    assert action.shape == (4, 8, 6) and not action.any()
+
+
+def test_heuristic_goes_behind_the_sphere_away_from_its_goal():
+    cfg = one_object_config()
+    sphere, goal = (7.0, 7.0), (12.0, 7.0)  # goal along +x: target is 2 cells left, x = 5
+    policy = ScriptedHeuristicPolicy(cfg)
+    left = policy(posed_scene([(3.0, 7.0)], [sphere], [goal], cfg))[GROUP, "action"][0, 0]
+    right = policy(posed_scene([(10.0, 7.0)], [sphere], [goal], cfg))[GROUP, "action"][0, 0]
+    assert left[VX] > 0.5 and abs(left[VY]) < 1e-5
+    assert right[VX] < -0.5 and abs(right[VY]) < 1e-5
+    # the same along y, goal along -y: the target is above the sphere (y = 9)
+    goal = (7.0, 2.0)
+    below = policy(posed_scene([(7.0, 5.0)], [sphere], [goal], cfg))[GROUP, "action"][0, 0]
+    assert below[VY] > 0.5 and abs(below[VX]) < 1e-5
+
+
+def test_heuristic_steers_across_the_wrapped_edge():
+    cfg = one_object_config()
+    # sphere at cell 3, goal along +x: target at x = 1; from x = 13.5 the short way is +x
+    td = posed_scene([(13.5, 7.0)], [(3.0, 7.0)], [(10.0, 7.0)], cfg)
+    assert ScriptedHeuristicPolicy(cfg)(td)[GROUP, "action"][0, 0, VX] > 0.5
+    unwrapped = cfg.replace(wrap_edges=False)
+    assert ScriptedHeuristicPolicy(unwrapped)(td)[GROUP, "action"][0, 0, VX] < -0.5
+
+
+def test_heuristic_raises_the_bump_only_near_its_target():
+    cfg = one_object_config()
+    policy = ScriptedHeuristicPolicy(cfg)
+    sphere, goal = (7.0, 7.0), (12.0, 7.0)
+    at_target = policy(posed_scene([(5.0, 7.0)], [sphere], [goal], cfg))[GROUP, "action"][0, 0]
+    assert at_target[AMP] == 1.0  # amplitude 0 -> towards +max_amplitude
+    assert abs(at_target[VX]) < 1e-5 and abs(at_target[VY]) < 1e-5  # at rest on its target
+    far = posed_scene([(1.0, 12.0)], [sphere], [goal], cfg)
+    far[GROUP, "observation"][0, 0, 3] = 0.5  # a half-height bump travelling
+    far[GROUP, "observation"][0, 0, 8] = 0.5  # spinning
+    far[GROUP, "observation"][0, 0, 4:6] = 1.0  # widest
+    action = policy(far)[GROUP, "action"][0, 0]
+    assert action[AMP] < 0  # flattened while it travels
+    assert action[OMEGA] < 0  # spin towards zero
+    assert action[SX] < 0 and action[SY] < 0  # width towards one cell
+
+
+def test_heuristic_feeds_the_sphere_velocity_forward():
+    cfg = one_object_config()
+    td = posed_scene([(5.0, 7.0)], [(7.0, 7.0)], [(12.0, 7.0)], cfg)
+    td["objects"][0, 0, 6] = 0.3  # rolling towards +x at 0.3 m/s
+    assert ScriptedHeuristicPolicy(cfg)(td)[GROUP, "action"][0, 0, VX] > 0.5
+
+
+def test_heuristic_skips_empty_slots_and_idles_without_spheres():
+    cfg = one_object_config(num_agents=2, num_objects=2)
+    policy = ScriptedHeuristicPolicy(cfg)
+    # slot 0 empty: agent 0 serves the sphere in slot 1 (target x = 5), like agent 1
+    td = posed_scene([(3.0, 7.0), (9.0, 7.0)], [None, (7.0, 7.0)], [(0, 0), (12.0, 7.0)], cfg)
+    action = policy(td)[GROUP, "action"][0]
+    assert action[0, VX] > 0.5 and action[1, VX] < -0.5
+    # no sphere at all: stop and flatten
+    idle = posed_scene([(3.0, 7.0), (9.0, 7.0)], [None, None], [(0, 0), (0, 0)], cfg)
+    idle[GROUP, "observation"][0, :, 6] = 0.5  # moving towards +x
+    idle[GROUP, "observation"][0, :, 3] = 0.5  # raised
+    action = policy(idle)[GROUP, "action"][0]
+    assert (action[:, VX] < 0).all() and (action[:, AMP] < 0).all()
+
+
+def test_heuristic_rejects_bad_parameters():
+    with pytest.raises(ValueError, match="amplitude"):
+        ScriptedHeuristicPolicy(CFG, amplitude=0.0)
+    with pytest.raises(ValueError, match="offset"):
+        ScriptedHeuristicPolicy(CFG, offset=-1.0)
