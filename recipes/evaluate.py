@@ -1,0 +1,115 @@
+"""Scores a trained MA-POCA policy and the baselines in evaluation mode, and records a video.
+
+    python recipes/evaluate.py checkpoint=<run dir>/checkpoints/last.pt
+    python recipes/evaluate.py checkpoint=last.pt episodes=512 video.steps=0
+
+Writes ``evaluation.json`` (success rate, goals and out-of-bounds per episode, mean reward per
+decision; for the policy's mean action, for its samples, and for each baseline) and a video of
+one environment into Hydra's run directory.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import hydra
+import torch
+from mapoca_pretrain import resolve_device, structured
+from omegaconf import DictConfig
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
+from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.training import load_checkpoint, make_training_env
+from terrashift_rl.training.evaluation import evaluate, evaluate_baselines
+
+
+def trained_policy(networks, exploration: ExplorationType):
+    """The actor as a plain callable, with its exploration type fixed."""
+
+    def policy(td):
+        with set_exploration_type(exploration):
+            return networks.actor(td)
+
+    return policy
+
+
+@hydra.main(version_base=None, config_path="configs", config_name="evaluate")
+def main(cfg: DictConfig) -> None:
+    device = resolve_device(cfg.device)
+    run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
+    checkpoint = load_checkpoint(cfg.checkpoint) if cfg.checkpoint else None
+    if checkpoint is not None and cfg.scene_from_checkpoint:
+        scene = TerraShiftConfig(**checkpoint["env_config"])
+    else:
+        scene = structured(TerraShiftConfig, cfg.env, "env")
+    scene = scene.replace(respawn=False)
+    results: dict = {"scene": dataclasses.asdict(scene), "episodes": cfg.episodes}
+
+    networks = None
+    if checkpoint is not None:
+        networks = make_terrashift_networks(TerraShiftModelConfig(**checkpoint["model_config"]))
+        networks.load_state_dict(checkpoint["networks"])
+        networks.to(device).eval()
+        results["checkpoint"] = str(cfg.checkpoint)
+        results["checkpoint_env_steps"] = checkpoint["env_steps"]
+        with torch.no_grad():
+            for name, exploration in (
+                ("deterministic", ExplorationType.DETERMINISTIC),
+                ("stochastic", ExplorationType.RANDOM),
+            ):
+                env = make_training_env(
+                    scene, networks, num_envs=cfg.episodes, device=device, seed=cfg.seed
+                )
+                results[name] = evaluate(env, trained_policy(networks, exploration))
+                print(f"policy ({name}): {results[name]}")
+    if cfg.baselines:
+        results["baselines"] = evaluate_baselines(
+            scene, num_envs=cfg.episodes, device=device, seed=cfg.seed
+        )
+        for name, metrics in results["baselines"].items():
+            print(f"baseline {name}: {metrics}")
+    out = run_dir / "evaluation.json"
+    out.write_text(json.dumps(results, indent=2))
+    print(f"wrote {out}")
+
+    video = None
+    if cfg.video.steps > 0:
+        from terrashift_rl.envs.render import record_rollout, save_video
+
+        if networks is not None:
+            env = make_training_env(scene, networks, num_envs=1, device=device, seed=cfg.seed)
+            policy = trained_policy(networks, ExplorationType.DETERMINISTIC)
+        else:
+            from terrashift_rl.envs import TerraShiftEnv
+            from terrashift_rl.envs.baselines import ScriptedHeuristicPolicy
+
+            env = TerraShiftEnv(scene, num_envs=1, device=device, seed=cfg.seed)
+            policy = ScriptedHeuristicPolicy(scene)
+        with torch.no_grad():
+            frames = record_rollout(env, policy, steps=cfg.video.steps, every=cfg.video.every)
+        video = save_video(frames, run_dir / f"rollout.{cfg.video.format}", fps=cfg.video.fps)
+        print(f"wrote {video}")
+
+    if cfg.wandb:
+        import wandb
+
+        run = wandb.init(
+            project="terrashift_rl",
+            dir=str(run_dir),
+            mode="offline",
+            job_type="evaluation",
+            config=results,
+        )
+        for group, metrics in results.items():
+            if isinstance(metrics, dict) and group not in ("scene", "baselines"):
+                run.log({f"{group}/{key}": value for key, value in metrics.items()})
+        if video is not None:
+            run.log({"rollout": wandb.Video(str(video), format=cfg.video.format)})
+        run.finish()
+
+
+if __name__ == "__main__":
+    main()
