@@ -165,7 +165,7 @@ class Simulator:
     # --- launch order ---------------------------------------------------------------------
     def _launch_step(self) -> None:
         d, m = self.data, self.model
-        n, k, g = self.num_envs, self.config.num_agents, self.config.grid_size
+        n, k = self.num_envs, self.config.num_agents
         wp.launch(events.begin_decision, dim=n, inputs=[d.reward])
         for _ in range(self.config.action_repeat):
             wp.launch(
@@ -182,22 +182,7 @@ class Simulator:
                     d.agent_sigma,
                 ],
             )
-            wp.launch(
-                wave.compute_heights,
-                dim=(n, g, g),
-                inputs=[
-                    m,
-                    d.env_mask,
-                    0,
-                    1,
-                    d.agent_position,
-                    d.agent_angle,
-                    d.agent_amplitude,
-                    d.agent_sigma,
-                    d.column_height_prev,
-                    d.column_height,
-                ],
-            )
+            self._launch_heights(masked=False, keep_velocity=True)
             self._launch_physics()
             wp.launch(
                 events.tick_events,
@@ -227,7 +212,7 @@ class Simulator:
 
     def _launch_reset(self) -> None:
         d, m = self.data, self.model
-        n, g = self.num_envs, self.config.grid_size
+        n = self.num_envs
         wp.launch(
             events.reset_episodes,
             dim=n,
@@ -252,22 +237,7 @@ class Simulator:
                 d.episode_out_of_bounds,
             ],
         )
-        wp.launch(
-            wave.compute_heights,
-            dim=(n, g, g),
-            inputs=[
-                m,
-                d.env_mask,
-                1,
-                0,
-                d.agent_position,
-                d.agent_angle,
-                d.agent_amplitude,
-                d.agent_sigma,
-                d.column_height_prev,
-                d.column_height,
-            ],
-        )
+        self._launch_heights(masked=True, keep_velocity=False)
         wp.launch(
             events.spawn_due,
             dim=n,
@@ -286,6 +256,27 @@ class Simulator:
             ],
         )
         self._launch_observations()
+
+    def _launch_heights(self, *, masked: bool, keep_velocity: bool) -> None:
+        """Column heights from the wavelets: every environment, or those in ``env_mask``;
+        moving from the previous heights over the tick, or at rest (after a reset)."""
+        d, g = self.data, self.config.grid_size
+        wp.launch(
+            wave.compute_heights,
+            dim=(self.num_envs, g, g),
+            inputs=[
+                self.model,
+                d.env_mask,
+                int(masked),
+                int(keep_velocity),
+                d.agent_position,
+                d.agent_angle,
+                d.agent_amplitude,
+                d.agent_sigma,
+                d.column_height_prev,
+                d.column_height,
+            ],
+        )
 
     def _launch_physics(self) -> None:
         d, m = self.data, self.model
