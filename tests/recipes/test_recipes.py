@@ -1,5 +1,6 @@
 """Recipes: every config composes; the smoke config trains, resumes exactly and finetunes."""
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -7,6 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from PIL import Image
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPES = ROOT / "recipes"
@@ -100,6 +102,33 @@ def test_smoke_train_resume_and_finetune(tmp_path):
     assert finetune.returncode == 0, finetune.stderr
     d = torch.load(tmp_path / "d/checkpoints/last.pt", weights_only=False)
     assert d["env_config"]["num_agents"] == 6 and d["iteration"] == 2
+
+    evaluation = subprocess.run(
+        [
+            sys.executable,
+            str(RECIPES / "evaluate.py"),
+            "checkpoint=d/checkpoints/last.pt",
+            "episodes=3",
+            "device=cpu",
+            "video.steps=2",
+            "video.every=1",
+            "video.format=gif",
+            "hydra.run.dir=e",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert evaluation.returncode == 0, evaluation.stderr
+    report = json.loads((tmp_path / "e/evaluation.json").read_text())
+    assert report["scene"]["num_agents"] == 6 and not report["scene"]["respawn"]
+    for name in ("deterministic", "stochastic"):
+        assert report[name]["episodes"] == 3
+        assert 0.0 <= report[name]["success_rate"] <= 1.0
+    assert set(report["baselines"]) == {"random", "zero", "heuristic"}
+    with Image.open(tmp_path / "e/rollout.gif") as video:
+        assert video.n_frames >= 2  # the reset frame and one per decision (GIFs merge repeats)
 
 
 @pytest.mark.parametrize(
