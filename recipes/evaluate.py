@@ -103,9 +103,11 @@ def main(cfg: DictConfig) -> None:
             job_type="evaluation",
             config=results,
         )
-        for group, metrics in results.items():
-            if isinstance(metrics, dict) and group not in ("scene", "baselines"):
-                run.log({f"{group}/{key}": value for key, value in metrics.items()})
+        scored = {
+            **{name: results[name] for name in ("deterministic", "stochastic") if name in results},
+            **{f"baseline_{name}": value for name, value in results.get("baselines", {}).items()},
+        }
+        run.log({f"{name}/{key}": value for name, m in scored.items() for key, value in m.items()})
         if video is not None:
             run.log({"rollout": wandb.Video(str(video), format=cfg.video.format)})
         run.finish()
