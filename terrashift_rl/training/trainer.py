@@ -34,8 +34,8 @@ from terrashift_rl.objectives import MAPOCALoss
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training.schedules import LinearSchedule
 
-# Collection writes these for the update's convenience; the update recomputes them, so they are
-# not kept in the batch (they would double its memory).
+# Collection writes these as by-products of acting; every pass of the update recomputes them
+# with the current parameters, so the batch does not keep them.
 _RECOMPUTED_KEYS = (
     keys.AGENT_EMBEDDING,
     keys.BETA_CONCENTRATION0,
