@@ -39,7 +39,8 @@ class CentralValueHead(nn.Module):
     def forward(self, embedding: Tensor, agent_mask: Tensor | None = None) -> Tensor:
         """Value [..., 1] of agent embeddings [..., K, d] (mask [..., K], True = present)."""
         attended = self.attention(embedding, agent_mask)
-        return self.mlp(masked_mean(attended, agent_mask))
+        # float32 out, also under bf16 autocast: returns and value losses need the precision
+        return self.mlp(masked_mean(attended, agent_mask)).float()
 
 
 class CounterfactualBaselineHead(nn.Module):
@@ -80,4 +81,4 @@ class CounterfactualBaselineHead(nn.Module):
         tokens = torch.where(is_self[..., None], own.unsqueeze(-2), others.unsqueeze(-3))
         key_mask = None if agent_mask is None else agent_mask.unsqueeze(-2) | is_self
         attended = self.attention(tokens, key_mask)
-        return self.mlp(masked_mean(attended, key_mask))
+        return self.mlp(masked_mean(attended, key_mask)).float()  # float32, as the value
