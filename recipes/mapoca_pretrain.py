@@ -51,7 +51,10 @@ def resolve_device(name: str) -> torch.device:
     if name == "auto":
         if torch.cuda.is_available():
             return torch.device("cuda")
-        print("no CUDA device found: training on the CPU (slow; fine for smoke runs)")
+        print(
+            "no CUDA device found: running on the CPU, which suits small runs "
+            "(e.g. --config-name smoke, or train.num_envs=16 model=small)"
+        )
         return torch.device("cpu")
     return torch.device(name)
 

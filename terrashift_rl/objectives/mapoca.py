@@ -68,12 +68,21 @@ class MAPOCAValueEstimator:
     """
 
     def __init__(
-        self, loss: MAPOCALoss, *, value_type: ValueEstimators, gamma: float, lmbda: float
+        self,
+        loss: MAPOCALoss,
+        *,
+        value_type: ValueEstimators,
+        gamma: float,
+        lmbda: float,
+        max_batch: int | None = None,
     ) -> None:
+        if max_batch is not None and max_batch < 1:
+            raise ValueError(f"max_batch must be a positive integer or None, got {max_batch}")
         self.loss = loss
         self.value_type = value_type
         self.gamma = gamma
         self.lmbda = lmbda
+        self.max_batch = max_batch
 
     def __repr__(self) -> str:
         return (
@@ -96,8 +105,8 @@ class MAPOCAValueEstimator:
         # (and "next" from the state stored after the step), which reproduces the collection's
         # hidden states exactly, also across episode boundaries.
         with set_exploration_type(ExplorationType.DETERMINISTIC), set_recurrent_mode(False):
-            state_value, baseline = loss._run_critics(root, with_baseline=True)
-            next_state_value, _ = loss._run_critics(next_step, with_baseline=False)
+            state_value, baseline = self._critics(root, with_baseline=True)
+            next_state_value, _ = self._critics(next_step, with_baseline=False)
 
         agent_mask = loss._agent_mask(tensordict, baseline)
         batch_dims = tensordict.batch_dims
@@ -146,6 +155,21 @@ class MAPOCAValueEstimator:
         tensordict.set(keys.baseline, baseline)
         tensordict.set(keys.advantage, advantage)
         return tensordict
+
+    def _critics(
+        self, tensordict: TensorDictBase, *, with_baseline: bool
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The loss's critics on ``tensordict``, ``max_batch`` leading rows at a time (in step
+        mode every element is independent, so the pieces give the same values)."""
+        if self.max_batch is None or tensordict.shape[0] <= self.max_batch:
+            return self.loss._run_critics(tensordict, with_baseline=with_baseline)
+        pieces = [
+            self.loss._run_critics(piece, with_baseline=with_baseline)
+            for piece in tensordict.split(self.max_batch, dim=0)
+        ]
+        value = torch.cat([value for value, _ in pieces])
+        baseline = torch.cat([b for _, b in pieces]) if with_baseline else None
+        return value, baseline
 
 
 class MAPOCALoss(LossModule):
@@ -452,6 +476,7 @@ class MAPOCALoss(LossModule):
         *,
         gamma: float = 0.99,
         lmbda: float = 0.95,
+        max_batch: int | None = None,
     ) -> MAPOCALoss:
         """Sets the value-estimation pass, reachable as ``loss.value_estimator``.
 
@@ -461,6 +486,8 @@ class MAPOCALoss(LossModule):
         Keyword Args:
             gamma: discount γ.
             lmbda: λ of the λ-returns.
+            max_batch: run the networks on at most this many rows of the leading batch dim at
+                a time (bounds memory; the results are the same); None runs them at once.
 
         Returns:
             The loss, for chaining.
@@ -474,7 +501,7 @@ class MAPOCALoss(LossModule):
             )
         self.value_type = value_type
         self._value_estimator = MAPOCAValueEstimator(
-            self, value_type=value_type, gamma=gamma, lmbda=lmbda
+            self, value_type=value_type, gamma=gamma, lmbda=lmbda, max_batch=max_batch
         )
         return self
 

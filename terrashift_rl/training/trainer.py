@@ -142,7 +142,13 @@ class MAPOCATrainer:
             baseline_coeff=config.baseline_coeff,
             clip_value=config.value_clip_start,
         )
-        self.loss.make_value_estimator(ValueEstimators.GAE, gamma=config.gamma, lmbda=config.lmbda)
+        # the estimation pass runs no bigger pieces than a training mini-batch: same memory bound
+        self.loss.make_value_estimator(
+            ValueEstimators.GAE,
+            gamma=config.gamma,
+            lmbda=config.lmbda,
+            max_batch=math.ceil(config.num_envs / config.minibatches),
+        )
         policy_parameters = [*networks.trunk.parameters(), *networks.policy_head.parameters()]
         critic_parameters = [
             *networks.value_head.parameters(),

@@ -419,6 +419,21 @@ def test_td_lambda_gives_the_reference_returns():
     torch.testing.assert_close(data["value_target"].squeeze(-1), expected, **TOLERANCE)
 
 
+def test_value_estimation_in_pieces_gives_the_same_results():
+    modules = make_modules()
+    actor, value, baseline, _ = wrap(modules)
+    whole, pieces = make_batch(actor), make_batch(actor)
+    make_loss(actor, value, baseline).value_estimator(whole)
+    loss = make_loss(actor, value, baseline).make_value_estimator(
+        ValueEstimators.GAE, gamma=GAMMA, lmbda=LMBDA, max_batch=1
+    )
+    loss.value_estimator(pieces)
+    for key in ("state_value", "value_target", ("agents", "baseline"), ("agents", "advantage")):
+        torch.testing.assert_close(pieces[key], whole[key], **TOLERANCE)
+    with pytest.raises(ValueError, match="max_batch"):
+        loss.make_value_estimator(ValueEstimators.GAE, max_batch=0)
+
+
 def test_unsupported_value_estimator_is_refused():
     actor, value, baseline, _ = wrap(make_modules())
     loss = MAPOCALoss(actor, value, baseline)
