@@ -36,7 +36,7 @@ class TerraShiftEnv(EnvBase):
     ``"episode_out_of_bounds"``         [N, 1] int64         spheres lost since the reset
     ``("agents", "action")``            [N, K, 6]            deltas in [-1, 1] (clipped)
     ``("agents", "reward")``            [N, K, 1]            the team reward, same for every agent
-    ``done/terminated/truncated``       [N, 1] and [N, K, 1] at the root and under ``"agents"``
+    ``done/terminated/truncated``       [N, 1], [N, K, 1]    at the root and under ``"agents"``
     ==================================  ===================  =======================================
 
     ``truncated`` marks the step limit; ``terminated`` is only raised in evaluation mode
