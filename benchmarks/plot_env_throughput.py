@@ -1,0 +1,48 @@
+"""Plots env-steps/s against num_envs from env_throughput JSON files.
+
+    python benchmarks/plot_env_throughput.py benchmarks/results/env_throughput_cuda.json \
+        --out docs/figures/env_throughput_h100.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("results", nargs="+", type=Path, help="env_throughput JSON files")
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+    figure = Figure(figsize=(6.4, 4.0), layout="constrained")
+    FigureCanvasAgg(figure)
+    ax = figure.subplots()
+    for path in args.results:
+        result = json.loads(path.read_text())
+        sizes = [row["num_envs"] for row in result["rows"]]
+        for key, label in (("sim_steps_per_s", "simulator"), ("env_steps_per_s", "TorchRL env")):
+            ax.plot(
+                sizes,
+                [row[key] for row in result["rows"]],
+                marker="o",
+                label=f"{label}, {result['device']}",
+            )
+    ax.set_xscale("log", base=2)
+    ax.set_yscale("log")
+    ax.set_xlabel("environments")
+    ax.set_ylabel("env-steps/s (decisions)")
+    ax.set_title(f"pretrain scene, {result['date']}")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(args.out, dpi=110)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
