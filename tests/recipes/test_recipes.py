@@ -53,9 +53,13 @@ def test_every_group_option_composes_into_its_dataclass(group, option):
         assert values["kind"] in ("wandb", "csv", "tensorboard", "none")
 
 
-def run(script: str, *overrides: str, cwd: Path) -> subprocess.CompletedProcess:
+def run(
+    script: str, *overrides: str, cwd: Path, config_name: str | None = "smoke"
+) -> subprocess.CompletedProcess:
+    """Runs a recipe in a subprocess (with the smoke config unless told otherwise)."""
+    config = [] if config_name is None else ["--config-name", config_name]
     return subprocess.run(
-        [sys.executable, str(RECIPES / script), "--config-name", "smoke", *overrides],
+        [sys.executable, str(RECIPES / script), *config, *overrides],
         cwd=cwd,
         capture_output=True,
         text=True,
@@ -83,42 +87,29 @@ def test_smoke_train_resume_and_finetune(tmp_path):
     for name, value in a["networks"].items():
         torch.testing.assert_close(c["networks"][name], value, atol=0, rtol=0)
 
-    finetune = subprocess.run(
-        [
-            sys.executable,
-            str(RECIPES / "mapoca_finetune.py"),
-            "--config-name",
-            "smoke",
-            "run.pretrained=b/checkpoints/last.pt",
-            "env.grid_size=10",
-            "env.num_agents=6",
-            "hydra.run.dir=d",
-        ],
+    finetune = run(
+        "mapoca_finetune.py",
+        "run.pretrained=b/checkpoints/last.pt",
+        "env.grid_size=10",
+        "env.num_agents=6",
+        "hydra.run.dir=d",
         cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=600,
     )
     assert finetune.returncode == 0, finetune.stderr
     d = torch.load(tmp_path / "d/checkpoints/last.pt", weights_only=False)
     assert d["env_config"]["num_agents"] == 6 and d["iteration"] == 2
 
-    evaluation = subprocess.run(
-        [
-            sys.executable,
-            str(RECIPES / "evaluate.py"),
-            "checkpoint=d/checkpoints/last.pt",
-            "episodes=3",
-            "device=cpu",
-            "video.steps=2",
-            "video.every=1",
-            "video.format=gif",
-            "hydra.run.dir=e",
-        ],
+    evaluation = run(
+        "evaluate.py",
+        "checkpoint=d/checkpoints/last.pt",
+        "episodes=3",
+        "device=cpu",
+        "video.steps=2",
+        "video.every=1",
+        "video.format=gif",
+        "hydra.run.dir=e",
         cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=600,
+        config_name=None,
     )
     assert evaluation.returncode == 0, evaluation.stderr
     report = json.loads((tmp_path / "e/evaluation.json").read_text())
