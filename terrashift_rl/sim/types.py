@@ -15,7 +15,6 @@ from terrashift_rl.sim.config import COLUMN_SHAPES, TerraShiftConfig
 
 SHAPE_ELLIPSOID = wp.constant(COLUMN_SHAPES.index("ellipsoid"))
 SHAPE_BOX = wp.constant(COLUMN_SHAPES.index("box"))
-SHAPE_SMOOTH = wp.constant(COLUMN_SHAPES.index("smooth"))
 
 OBJECT_FEATURES = 9
 """Per-object observation: position (3), goal position (3), velocity (3)."""
