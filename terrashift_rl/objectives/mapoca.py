@@ -34,6 +34,8 @@ from torchrl.objectives.value.functional import (
     vec_td_lambda_return_estimate,
 )
 
+from terrashift_rl.objectives.normalization import ValueNormalizer
+
 __all__ = ["MAPOCALoss", "MAPOCAValueEstimator"]
 
 _ADVANTAGE_STD_EPS = 1e-8
@@ -57,7 +59,14 @@ class MAPOCAValueEstimator:
 
     V(s_{t+1}) comes from running the networks on ``data["next"]``, torchrl's convention: a
     recurrent network reads the collected ``("next", <state>)`` there, the state after step t,
-    so V(s_{t+1}) sees exactly the memory the policy had.
+    so V(s_{t+1}) sees exactly the memory the policy had. With ``reuse_root_values``, V(s_{t+1})
+    is read from step t + 1 wherever step t did not end an episode, and the networks run on
+    ``data["next"]`` only at episode ends and the last step: exact for collected trajectories,
+    where ``data["next"]`` at step t is the root of step t + 1, and one network pass cheaper.
+
+    With a :class:`ValueNormalizer` on the loss, the critics' outputs are denormalised for the
+    returns and advantages, ``value`` and ``baseline`` are stored as the critics output them,
+    ``value_target`` in return units, and the normaliser is updated with the new targets.
 
     Attributes:
         value_type: ``ValueEstimators.GAE`` or ``ValueEstimators.TDLambda``. They give the
@@ -65,6 +74,7 @@ class MAPOCAValueEstimator:
             an episode, as in collected data: the GAE value target is then the TD(λ) return.
         gamma: discount γ.
         lmbda: λ of the λ-returns.
+        reuse_root_values: whether V(s_{t+1}) is read from step t + 1 within episodes.
     """
 
     def __init__(
@@ -75,6 +85,7 @@ class MAPOCAValueEstimator:
         gamma: float,
         lmbda: float,
         max_batch: int | None = None,
+        reuse_root_values: bool = False,
     ) -> None:
         if max_batch is not None and max_batch < 1:
             raise ValueError(f"max_batch must be a positive integer or None, got {max_batch}")
@@ -83,6 +94,7 @@ class MAPOCAValueEstimator:
         self.gamma = gamma
         self.lmbda = lmbda
         self.max_batch = max_batch
+        self.reuse_root_values = reuse_root_values
 
     def __repr__(self) -> str:
         return (
@@ -106,17 +118,31 @@ class MAPOCAValueEstimator:
         # hidden states exactly, also across episode boundaries.
         with set_exploration_type(ExplorationType.DETERMINISTIC), set_recurrent_mode(False):
             state_value, baseline = self._critics(root, with_baseline=True)
-            next_state_value, _ = self._critics(next_step, with_baseline=False)
-
         agent_mask = loss._agent_mask(tensordict, baseline)
         batch_dims = tensordict.batch_dims
+        done = _team_flag(tensordict.get(("next", *_as_tuple(keys.done))), agent_mask, batch_dims)
+        with set_exploration_type(ExplorationType.DETERMINISTIC), set_recurrent_mode(False):
+            if self.reuse_root_values:
+                # runs on "next" where step t + 1's root is another episode or outside the batch
+                fresh = done.squeeze(-1).clone()
+                fresh.select(time_dim, -1).fill_(True)
+                next_state_value = state_value.roll(-1, dims=time_dim)
+                next_state_value[fresh] = self._critics(next_step[fresh], with_baseline=False)[0]
+            else:
+                next_state_value, _ = self._critics(next_step, with_baseline=False)
+        stored_value, stored_baseline = state_value, baseline
+        normalizer = loss.value_normalizer
+        if normalizer is not None:
+            state_value = normalizer.denormalize(state_value)
+            next_state_value = normalizer.denormalize(next_state_value)
+            baseline = normalizer.denormalize(baseline)
+
         team_reward = _team_reward(
             tensordict.get(("next", *_as_tuple(keys.reward))),
             agent_mask,
             batch_dims=batch_dims,
             reduction=loss.team_reward_reduction,
         )
-        done = _team_flag(tensordict.get(("next", *_as_tuple(keys.done))), agent_mask, batch_dims)
         terminated = _team_flag(
             tensordict.get(("next", *_as_tuple(keys.terminated))), agent_mask, batch_dims
         )
@@ -150,9 +176,11 @@ class MAPOCAValueEstimator:
         if agent_mask is not None:
             advantage = torch.where(agent_mask.unsqueeze(-1), advantage, 0.0)
 
-        tensordict.set(keys.value, state_value)
+        if normalizer is not None:
+            normalizer.update(value_target)
+        tensordict.set(keys.value, stored_value)
         tensordict.set(keys.value_target, value_target)
-        tensordict.set(keys.baseline, baseline)
+        tensordict.set(keys.baseline, stored_baseline)
         tensordict.set(keys.advantage, advantage)
         return tensordict
 
@@ -231,6 +259,9 @@ class MAPOCALoss(LossModule):
         team_reward_reduction: how a per-agent reward becomes the team reward: ``"mean"`` over
             present agents (right when every agent carries a copy of the team reward, as in
             TerraShift) or ``"sum"`` (individual rewards, as ML-Agents adds them up).
+        value_normalizer: a :class:`ValueNormalizer`: the value and baseline networks then
+            learn normalised returns (the estimator keeps its statistics); ``None`` trains them
+            on raw returns.
 
     Examples:
         >>> import torch
@@ -361,6 +392,7 @@ class MAPOCALoss(LossModule):
         per_dimension_ratio: bool = False,
         max_log_ratio: float | None = 8.0,
         team_reward_reduction: Literal["mean", "sum"] = "mean",
+        value_normalizer: ValueNormalizer | None = None,
     ) -> None:
         if team_reward_reduction not in ("mean", "sum"):
             raise ValueError(
@@ -387,6 +419,7 @@ class MAPOCALoss(LossModule):
         self.per_dimension_ratio = per_dimension_ratio
         self.max_log_ratio = max_log_ratio
         self.team_reward_reduction = team_reward_reduction
+        self.value_normalizer = value_normalizer
         actor_outputs = set(actor_network.det_part.out_keys)
         self._critics_read_actor_outputs = bool(
             (set(value_network.in_keys) | set(baseline_network.in_keys)) & actor_outputs
@@ -477,6 +510,7 @@ class MAPOCALoss(LossModule):
         gamma: float = 0.99,
         lmbda: float = 0.95,
         max_batch: int | None = None,
+        reuse_root_values: bool = False,
     ) -> MAPOCALoss:
         """Sets the value-estimation pass, reachable as ``loss.value_estimator``.
 
@@ -488,6 +522,9 @@ class MAPOCALoss(LossModule):
             lmbda: λ of the λ-returns.
             max_batch: run the networks on at most this many rows of the leading batch dim at
                 a time (bounds memory; the results are the same); None runs them at once.
+            reuse_root_values: read V(s_{t+1}) from step t + 1 within episodes and run the
+                networks on ``"next"`` only at episode ends and the last step; exact for
+                collected trajectories (see :class:`MAPOCAValueEstimator`).
 
         Returns:
             The loss, for chaining.
@@ -501,7 +538,12 @@ class MAPOCALoss(LossModule):
             )
         self.value_type = value_type
         self._value_estimator = MAPOCAValueEstimator(
-            self, value_type=value_type, gamma=gamma, lmbda=lmbda, max_batch=max_batch
+            self,
+            value_type=value_type,
+            gamma=gamma,
+            lmbda=lmbda,
+            max_batch=max_batch,
+            reuse_root_values=reuse_root_values,
         )
         return self
 
@@ -570,6 +612,8 @@ class MAPOCALoss(LossModule):
 
         entropy = _masked_mean(_per_agent(_entropy(dist), agent_shape, "entropy"), agent_mask)
 
+        if self.value_normalizer is not None:
+            value_target = self.value_normalizer.normalize(value_target)
         loss_critic, value_clip_fraction = self._regression_loss(
             value, old_value, value_target, mask=None
         )

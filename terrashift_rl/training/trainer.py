@@ -30,7 +30,7 @@ from torchrl.objectives import ValueEstimators
 
 from terrashift_rl.envs import TerraShiftEnv
 from terrashift_rl.modules import TerraShiftNetworks, keys
-from terrashift_rl.objectives import MAPOCALoss
+from terrashift_rl.objectives import MAPOCALoss, ValueNormalizer
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training.schedules import LinearSchedule
 
@@ -84,8 +84,15 @@ class TrainConfig:
     """Weight of the value loss."""
     baseline_coeff: float = 0.5
     """Weight of the baseline loss."""
+    normalize_value: bool = True
+    """Train the value and baseline heads on running-normalised returns (ValueNormalizer)."""
+    value_norm_decay: float = 0.99
+    """Weight of the old return statistics at each iteration."""
     bf16: bool = False
     """Run the networks under bfloat16 autocast on CUDA."""
+    compile: bool = False
+    """``torch.compile`` the networks (all but the GRU's loop over time); the first iterations
+    then include compilation."""
 
     def validate(self) -> None:
         """Raises ``ValueError`` for impossible combinations, saying what to change."""
@@ -101,6 +108,10 @@ class TrainConfig:
             )
         if not 0.0 < self.gamma <= 1.0 or not 0.0 <= self.lmbda <= 1.0:
             raise ValueError("train.gamma must be in (0, 1] and train.lmbda in [0, 1]")
+        if not 0.0 <= self.value_norm_decay < 1.0:
+            raise ValueError(
+                f"train.value_norm_decay must be in [0, 1), got {self.value_norm_decay}"
+            )
 
 
 def make_training_env(
@@ -132,6 +143,9 @@ class MAPOCATrainer:
         self.networks = networks
         self.config = config
         self.device = env.device
+        if config.compile:
+            networks.compile_networks()
+        normalizer = ValueNormalizer(config.value_norm_decay) if config.normalize_value else None
         self.loss = MAPOCALoss(
             networks.actor,
             networks.value_head,
@@ -141,13 +155,15 @@ class MAPOCATrainer:
             value_coeff=config.value_coeff,
             baseline_coeff=config.baseline_coeff,
             clip_value=config.value_clip_start,
-        )
+            value_normalizer=normalizer,
+        ).to(self.device)
         # the estimation pass runs no bigger pieces than a training mini-batch: same memory bound
         self.loss.make_value_estimator(
             ValueEstimators.GAE,
             gamma=config.gamma,
             lmbda=config.lmbda,
             max_batch=math.ceil(config.num_envs / config.minibatches),
+            reuse_root_values=True,  # collected trajectories: next[t] is the root of t + 1
         )
         policy_parameters = [*networks.trunk.parameters(), *networks.policy_head.parameters()]
         critic_parameters = [
@@ -247,14 +263,17 @@ class MAPOCATrainer:
 
     # --- checkpoints -----------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
-        """Everything a resumed run needs to continue exactly: weights, optimiser, counters,
-        random states, the simulator state and the tensordict carried between iterations."""
+        """Everything a resumed run needs to continue exactly: weights, optimiser, return
+        statistics, counters, random states, the simulator state and the tensordict carried
+        between iterations."""
+        normalizer = self.loss.value_normalizer
         return {
             "networks": self.networks.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "iteration": self.iteration,
             "env_steps": self.env_steps,
             "train_config": asdict(self.config),
+            "value_normalizer": (None if normalizer is None else normalizer.state_dict()),
             "torch_rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
             "simulator": self.env.base_env.sim.state_dict(),
@@ -265,6 +284,14 @@ class MAPOCATrainer:
         """Restores a :meth:`state_dict` taken from a run with the same settings."""
         self.networks.load_state_dict(state["networks"])
         self.optimizer.load_state_dict(state["optimizer"])
+        normalizer = self.loss.value_normalizer
+        if (normalizer is None) != (state.get("value_normalizer") is None):
+            raise ValueError(
+                "the checkpoint was trained with train.normalize_value="
+                f"{normalizer is None}; resume with the same setting"
+            )
+        if normalizer is not None:
+            normalizer.load_state_dict(state["value_normalizer"])
         self.iteration = state["iteration"]
         self.env_steps = state["env_steps"]
         torch.set_rng_state(state["torch_rng"])

@@ -16,7 +16,7 @@ from torchrl.modules import (
 )
 from torchrl.objectives import ValueEstimators
 
-from terrashift_rl.objectives import MAPOCALoss
+from terrashift_rl.objectives import MAPOCALoss, ValueNormalizer
 
 OBS_DIM, ACTION_DIM, EMBED_DIM = 3, 2, 4
 N_ENVS, N_STEPS, N_AGENTS = 2, 3, 2
@@ -432,6 +432,89 @@ def test_value_estimation_in_pieces_gives_the_same_results():
         torch.testing.assert_close(pieces[key], whole[key], **TOLERANCE)
     with pytest.raises(ValueError, match="max_batch"):
         loss.make_value_estimator(ValueEstimators.GAE, max_batch=0)
+
+
+def test_reusing_root_values_gives_the_same_results():
+    modules = make_modules()
+    actor, value, baseline, _ = wrap(modules)
+    plain, reused = make_batch(actor), make_batch(actor)
+    make_loss(actor, value, baseline).value_estimator(plain)
+    loss = make_loss(actor, value, baseline).make_value_estimator(
+        ValueEstimators.GAE, gamma=GAMMA, lmbda=LMBDA, reuse_root_values=True
+    )
+    loss.value_estimator(reused)
+    for key in ("state_value", "value_target", ("agents", "baseline"), ("agents", "advantage")):
+        torch.testing.assert_close(reused[key], plain[key], **TOLERANCE)
+
+    # Within an episode "next" is not read: V(s_{t+1}) comes from the root of step t + 1 ...
+    corrupted = make_batch(actor)
+    corrupted["next", "agents", "observation"][1, 0] += 5.0  # env 1 goes on after t=0
+    loss.value_estimator(corrupted)
+    torch.testing.assert_close(corrupted["value_target"], plain["value_target"], **TOLERANCE)
+    # ... but at a truncation (env 0, t=1) and at the batch's last step it is.
+    for step in (1, 2):
+        corrupted = make_batch(actor)
+        corrupted["next", "agents", "observation"][0, step] += 5.0
+        loss.value_estimator(corrupted)
+        assert not torch.allclose(
+            corrupted["value_target"][0, step], plain["value_target"][0, step]
+        )
+
+
+def test_value_normalizer_trains_critics_on_normalised_returns():
+    modules = make_modules()
+    actor, value, baseline, _ = wrap(modules)
+    normalizer = ValueNormalizer(decay=0.5)
+    normalizer.update(torch.tensor([2.0, 5.0, -1.0]))
+    mean, std = (s.item() for s in normalizer.statistics())
+    loss = make_loss(actor, value, baseline, value_normalizer=normalizer, clip_value=None)
+    normalised = make_batch(actor)
+    loss.value_estimator(normalised)
+
+    # The same critics with their outputs mapped to return units, and no normaliser.
+    raw_modules = make_modules()
+    raw_value_head, raw_baseline_head = raw_modules["value"], raw_modules["baseline"]
+    raw_actor, _, _, _ = wrap(raw_modules)
+    denormalised_value = TensorDictModule(
+        lambda e, m: raw_value_head(e, m) * std + mean,
+        in_keys=[("agents", "embedding"), ("agents", "mask")],
+        out_keys=["state_value"],
+    )
+    denormalised_baseline = TensorDictModule(
+        lambda e, a, m: raw_baseline_head(e, a, m) * std + mean,
+        in_keys=[("agents", "embedding"), ("agents", "action"), ("agents", "mask")],
+        out_keys=[("agents", "baseline")],
+    )
+    raw = make_batch(raw_actor)
+    make_loss(raw_actor, denormalised_value, denormalised_baseline).value_estimator(raw)
+
+    torch.testing.assert_close(normalised["value_target"], raw["value_target"], **TOLERANCE)
+    torch.testing.assert_close(
+        normalised["agents", "advantage"], raw["agents", "advantage"], **TOLERANCE
+    )
+    # stored old estimates are the critics' own outputs
+    torch.testing.assert_close(
+        normalised["state_value"] * std + mean, raw["state_value"], **TOLERANCE
+    )
+
+    # The pass moved the statistics towards the new targets (debiased EMA, decay 0.5).
+    targets = raw["value_target"]
+    first = torch.tensor([2.0, 5.0, -1.0])
+    expected_mean = (0.25 * first.mean() + 0.5 * targets.mean()) / 0.75
+    expected_square = (0.25 * first.square().mean() + 0.5 * targets.square().mean()) / 0.75
+    new_mean, new_std = normalizer.statistics()
+    torch.testing.assert_close(new_mean, expected_mean)
+    torch.testing.assert_close(new_std, (expected_square - expected_mean**2).sqrt())
+
+    # The value loss compares the critic's output with the target in normalised units.
+    out = loss(normalised)
+    with torch.no_grad():
+        data = normalised.copy()
+        actor.get_dist(data)
+        current_value = value(data)["state_value"]
+    target = (normalised["value_target"] - new_mean) / new_std
+    expected_loss = VALUE_COEFF * nn.functional.smooth_l1_loss(current_value, target)
+    torch.testing.assert_close(out["loss_critic"], expected_loss, **TOLERANCE)
 
 
 def test_unsupported_value_estimator_is_refused():

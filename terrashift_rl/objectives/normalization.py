@@ -1,0 +1,79 @@
+"""Running normalisation of value targets, so the critics learn returns of any scale in unit
+variance."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+
+class ValueNormalizer(nn.Module):
+    """Running mean and standard deviation of value targets.
+
+    The critics of a loss that holds one predict targets in normalised units: the value
+    estimator maps their outputs back with :meth:`denormalize` before computing returns and
+    advantages, then calls :meth:`update` with the new targets, and the regression losses
+    compare outputs with :meth:`normalize` d targets. The statistics are exponential moving
+    averages over calls to :meth:`update`, debiased as Adam's moments are, so the first batches
+    are not pulled towards zero. Before the first update both maps are the identity. Outputs are
+    not rescaled when the statistics move (no PopArt correction): with a decay near 1 they move
+    slowly compared with the critics' learning.
+
+    The statistics are buffers: they follow the module's device and its ``state_dict``.
+
+    Args:
+        decay: weight of the old statistics at each update, in [0, 1).
+        epsilon: floor of the variance.
+
+    Examples:
+        >>> normalizer = ValueNormalizer(decay=0.0)
+        >>> normalizer.update(torch.tensor([1.0, 3.0]))
+        >>> normalizer.normalize(torch.tensor([1.0, 3.0]))
+        tensor([-1.,  1.])
+        >>> normalizer.denormalize(torch.tensor([0.0]))
+        tensor([2.])
+    """
+
+    def __init__(self, decay: float = 0.99, epsilon: float = 1e-4) -> None:
+        super().__init__()
+        if not 0.0 <= decay < 1.0:
+            raise ValueError(f"decay must be in [0, 1), got {decay}")
+        if epsilon <= 0.0:
+            raise ValueError(f"epsilon must be positive, got {epsilon}")
+        self.decay = decay
+        self.epsilon = epsilon
+        self.register_buffer("mean_estimate", torch.zeros(()))
+        self.register_buffer("square_estimate", torch.zeros(()))
+        self.register_buffer("weight", torch.zeros(()))
+
+    def extra_repr(self) -> str:
+        return f"decay={self.decay}, epsilon={self.epsilon}"
+
+    @torch.no_grad()
+    def update(self, targets: Tensor) -> None:
+        """Moves the statistics towards the mean and mean square of ``targets`` (any shape)."""
+        targets = targets.detach().float()
+        if not torch.isfinite(targets).all():
+            raise ValueError("ValueNormalizer.update got non-finite value targets")
+        keep = self.decay
+        self.mean_estimate.mul_(keep).add_((1.0 - keep) * targets.mean())
+        self.square_estimate.mul_(keep).add_((1.0 - keep) * targets.square().mean())
+        self.weight.mul_(keep).add_(1.0 - keep)
+
+    def statistics(self) -> tuple[Tensor, Tensor]:
+        """(mean, standard deviation): (0, 1) before the first update."""
+        updated = self.weight > 0  # a tensor test: no host synchronisation
+        weight = torch.where(updated, self.weight, 1.0)
+        mean = self.mean_estimate / weight
+        variance = (self.square_estimate / weight - mean.square()).clamp_min(self.epsilon)
+        return torch.where(updated, mean, 0.0), torch.where(updated, variance.sqrt(), 1.0)
+
+    def normalize(self, value: Tensor) -> Tensor:
+        """Targets in the critics' units."""
+        mean, std = self.statistics()
+        return ((value - mean) / std).to(value.dtype)
+
+    def denormalize(self, value: Tensor) -> Tensor:
+        """Critic outputs in the targets' units."""
+        mean, std = self.statistics()
+        return (value * std + mean).to(value.dtype)
