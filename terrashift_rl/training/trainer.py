@@ -233,8 +233,11 @@ class MAPOCATrainer:
         config = self.config
         self._apply_schedules()
         self.networks.eval()
+        start = time.perf_counter()
         with self._autocast():
             self.loss.value_estimator(data)
+        self._synchronize()
+        estimation_seconds = time.perf_counter() - start
         self.networks.train()
         parameters = [p for group in self.optimizer.param_groups for p in group["params"]]
         max_grad_norm = self.schedules["max_grad_norm"](self.iteration)
@@ -259,6 +262,7 @@ class MAPOCATrainer:
         metrics["lr_trunk_policy"] = self.optimizer.param_groups[0]["lr"]
         metrics["clip_epsilon"] = float(self.loss.clip_epsilon)
         metrics["entropy_coeff"] = float(self.loss.entropy_coeff)
+        metrics["estimation_seconds"] = estimation_seconds
         return metrics
 
     # --- checkpoints -----------------------------------------------------------------------

@@ -1,0 +1,162 @@
+"""End-to-end training throughput: MAPOCATrainer iterations, collection and update together.
+
+Each setting (environments, epochs, mini-batches, precision, compilation) trains the default
+network on the pretrain scene for ``--warmup`` untimed iterations (compilation and the first
+allocations happen there), then ``--iters`` timed ones. Reported per setting: env-steps/s of
+whole iterations, collection alone, and how an iteration's seconds split into collection, the
+value-estimation pass and the epochs. Prints a table and writes JSON.
+
+    python benchmarks/train_throughput.py --device cuda
+    python benchmarks/train_throughput.py --settings 4096:2:8:bf16:compiled 8192:1:4:bf16:compiled
+    python benchmarks/train_throughput.py --device cpu --settings 8:1:2:fp32:eager --preset small
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+from datetime import date
+from pathlib import Path
+
+import torch
+
+from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
+from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.training import MAPOCATrainer, TrainConfig, make_training_env
+
+DEFAULT_SETTINGS = [
+    "4096:2:8:fp32:eager",
+    "4096:2:8:bf16:compiled",
+    "8192:1:4:bf16:compiled",
+    "16384:1:8:bf16:compiled",
+]
+
+
+def parse_setting(text: str) -> dict:
+    """``envs:epochs:minibatches:precision:compilation``, e.g. ``4096:2:8:bf16:compiled``."""
+    parts = text.split(":")
+    if len(parts) != 5 or parts[3] not in ("fp32", "bf16") or parts[4] not in ("eager", "compiled"):
+        raise argparse.ArgumentTypeError(
+            f"setting {text!r} is not envs:epochs:minibatches:(fp32|bf16):(eager|compiled)"
+        )
+    try:
+        envs, epochs, minibatches = (int(part) for part in parts[:3])
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"setting {text!r}: envs, epochs, minibatches are integers"
+        ) from None
+    return {
+        "num_envs": envs,
+        "epochs": epochs,
+        "minibatches": minibatches,
+        "precision": parts[3],
+        "compiled": parts[4] == "compiled",
+    }
+
+
+def measure(setting: dict, args: argparse.Namespace, device: torch.device) -> dict:
+    torch.manual_seed(0)
+    model = TerraShiftModelConfig.small() if args.preset == "small" else TerraShiftModelConfig()
+    networks = make_terrashift_networks(model).to(device)
+    config = TrainConfig(
+        num_envs=setting["num_envs"],
+        epochs=setting["epochs"],
+        minibatches=setting["minibatches"],
+        bf16=setting["precision"] == "bf16",
+        compile=setting["compiled"],
+    )
+    env = make_training_env(
+        TerraShiftConfig.preset("pretrain"),
+        networks,
+        num_envs=config.num_envs,
+        device=device,
+        seed=0,
+    )
+    trainer = MAPOCATrainer(env, networks, config)
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    start = time.perf_counter()
+    for _ in range(args.warmup):
+        trainer.train_iteration()
+    warmup_seconds = time.perf_counter() - start
+    rows = [trainer.train_iteration() for _ in range(args.iters)]
+    frames = config.num_envs * config.steps_per_iteration
+
+    def median(name: str) -> float:
+        return statistics.median(row[name] for row in rows)
+
+    result = {
+        **setting,
+        "steps_per_iteration": config.steps_per_iteration,
+        "warmup_iterations": args.warmup,
+        "warmup_seconds": warmup_seconds,
+        "env_steps_per_s": median("env_steps_per_s"),
+        "collection_steps_per_s": median("collection_steps_per_s"),
+        "collection_seconds": frames / median("collection_steps_per_s"),
+        "estimation_seconds": median("estimation_seconds"),
+        "epochs_seconds": median("update_seconds") - median("estimation_seconds"),
+        "iteration_seconds": frames / median("env_steps_per_s"),
+    }
+    if device.type == "cuda":
+        result["peak_memory_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
+    return result
+
+
+def format_row(row: dict) -> str:
+    name = (
+        f"{row['num_envs']:>6} | {row['epochs']}x{row['minibatches']:<3} | {row['precision']} | "
+        f"{'compiled' if row['compiled'] else 'eager':>8}"
+    )
+    return (
+        f"{name} | {row['env_steps_per_s']:>10,.0f} | {row['collection_steps_per_s']:>10,.0f} | "
+        f"{row['collection_seconds']:>6.2f} | {row['estimation_seconds']:>6.2f} | "
+        f"{row['epochs_seconds']:>6.2f} | {row['warmup_seconds']:>7.1f}"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument(
+        "--settings", type=parse_setting, nargs="+", default=[*map(parse_setting, DEFAULT_SETTINGS)]
+    )
+    parser.add_argument("--warmup", type=int, default=3, help="untimed iterations per setting")
+    parser.add_argument("--iters", type=int, default=4, help="timed iterations per setting")
+    parser.add_argument("--preset", choices=["default", "small"], default="default")
+    parser.add_argument(
+        "--out", type=Path, default=Path(__file__).parent / "results" / "train_throughput.json"
+    )
+    args = parser.parse_args()
+    if args.warmup < 0 or args.iters < 1:
+        parser.error("--warmup must be >= 0 and --iters >= 1")
+    device = torch.device(args.device)
+    device_name = (
+        torch.cuda.get_device_name(device) if device.type == "cuda" else f"CPU ({platform.machine()})"
+    )
+    print(f"MA-POCA training throughput, pretrain scene, {args.preset} network, {device_name}")
+    print(
+        "  envs | ep x mb | prec |    graphs | env-steps/s |  collect/s | coll s | est s  |"
+        " epochs s | warmup s"
+    )
+    rows = []
+    for setting in args.settings:
+        row = measure(setting, args, device)
+        rows.append(row)
+        print(format_row(row), flush=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "date": date.today().isoformat(),
+        "device": device_name,
+        "torch": torch.__version__,
+        "preset": args.preset,
+        "rows": rows,
+    }
+    args.out.write_text(json.dumps(payload, indent=2))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
