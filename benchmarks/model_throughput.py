@@ -6,7 +6,7 @@ sequences of ``--sequence-length`` steps in torchrl's recurrent mode: the actor'
 (trunk + policy head), the value and baseline heads on the same embedding, and backward. Every
 combination of batch size, precision (fp32, bf16 autocast) and compilation (eager,
 ``torch.compile`` of the tensor-level networks) is timed; "1st call" includes compilation.
-Prints a table and writes JSON.
+Prints a table and writes JSON after every combination, so an interrupted sweep keeps its rows.
 
     python benchmarks/model_throughput.py --device cuda
     python benchmarks/model_throughput.py --device cpu --batches 8 --iters 2 --no-compile
@@ -211,6 +211,14 @@ def format_row(row: dict) -> str:
     )
 
 
+def write_results(path: Path, payload: dict) -> None:
+    """Write ``payload`` as JSON through a temporary file, so the file is never half-written."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(path.name + ".partial")
+    partial.write_text(json.dumps(payload, indent=2))
+    partial.replace(path)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -250,7 +258,22 @@ def main() -> None:
         f"{'mode':>7} | {'prec':>4} | {'compile':>7} | {'batch':>6} | {'ms/call':>9} | "
         f"{'us/step':>8} | {'env-steps/s':>12} | {'1st call':>8} | {'peak MiB':>9}"
     )
-    rows = []
+    rows: list[dict] = []
+    payload = {
+        "benchmark": "model_throughput",
+        "date": date.today().isoformat(),
+        "device": device_name,
+        "torch": torch.__version__,
+        "task": {
+            "agents": args.agents,
+            "objects": args.objects,
+            "map_side": args.map_side,
+            "sequence_length": args.sequence_length,
+        },
+        "timing": {"iters": args.iters, "warmup": args.warmup, "statistic": "median"},
+        "model": {"preset": args.preset, **asdict(config)},
+        "rows": rows,
+    }
     for mode in args.modes:
         for precision_name in args.precisions:
             for compiled in [False] if args.no_compile else [False, True]:
@@ -269,24 +292,7 @@ def main() -> None:
                     )
                     rows.append(row)
                     print(format_row(row), flush=True)
-
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    payload = {
-        "benchmark": "model_throughput",
-        "date": date.today().isoformat(),
-        "device": device_name,
-        "torch": torch.__version__,
-        "task": {
-            "agents": args.agents,
-            "objects": args.objects,
-            "map_side": args.map_side,
-            "sequence_length": args.sequence_length,
-        },
-        "timing": {"iters": args.iters, "warmup": args.warmup, "statistic": "median"},
-        "model": {"preset": args.preset, **asdict(config)},
-        "rows": rows,
-    }
-    args.out.write_text(json.dumps(payload, indent=2))
+                    write_results(args.out, payload)
     print(f"wrote {args.out}")
 
 
