@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import statistics
 import time
 from datetime import date
@@ -133,28 +132,27 @@ def main() -> None:
     if args.warmup < 0 or args.iters < 1:
         parser.error("--warmup must be >= 0 and --iters >= 1")
     device = torch.device(args.device)
-    device_name = (
-        torch.cuda.get_device_name(device) if device.type == "cuda" else f"CPU ({platform.machine()})"
-    )
+    device_name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
     print(f"MA-POCA training throughput, pretrain scene, {args.preset} network, {device_name}")
     print(
         "  envs | ep x mb | prec |    graphs | env-steps/s |  collect/s | coll s | est s  |"
         " epochs s | warmup s"
     )
-    rows = []
-    for setting in args.settings:
-        row = measure(setting, args, device)
-        rows.append(row)
-        print(format_row(row), flush=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     payload = {
         "date": date.today().isoformat(),
         "device": device_name,
         "torch": torch.__version__,
         "preset": args.preset,
-        "rows": rows,
+        "rows": [],
     }
-    args.out.write_text(json.dumps(payload, indent=2))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    for setting in args.settings:
+        payload["rows"].append(measure(setting, args, device))
+        print(format_row(payload["rows"][-1]), flush=True)
+        # after every row, atomically: a run stopped part-way keeps what it measured
+        partial = args.out.with_suffix(".json.partial")
+        partial.write_text(json.dumps(payload, indent=2))
+        partial.replace(args.out)
     print(f"wrote {args.out}")
 
 
