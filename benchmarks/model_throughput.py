@@ -5,11 +5,12 @@ Collection is the actor's forward pass on one step of ``batch`` environments, wi
 sequences of ``--sequence-length`` steps in torchrl's recurrent mode: the actor's distribution
 (trunk + policy head), the value and baseline heads on the same embedding, and backward. Every
 combination of batch size, precision (fp32, bf16 autocast) and compilation (eager,
-``torch.compile`` of the tensor-level networks) is timed; "1st call" includes compilation.
+``TerraShiftNetworks.compile_networks``, as the trainer's ``train.compile``) is timed; "1st call"
+includes compilation.
 Prints a table and writes JSON after every combination, so an interrupted sweep keeps its rows.
 
     python benchmarks/model_throughput.py --device cuda
-    python benchmarks/model_throughput.py --device cpu --batches 8 --iters 2 --no-compile
+    python benchmarks/model_throughput.py --device cpu --batches 8 --iters 2 --graphs eager
 """
 
 from __future__ import annotations
@@ -84,10 +85,8 @@ def build_networks(
 ) -> TerraShiftNetworks:
     networks = make_terrashift_networks(config).to(device)
     if compiled:
-        # Compile the tensor-level networks in place; the TensorDict plumbing stays eager.
-        networks.trunk.network.compile()
-        for head in (networks.policy_head, networks.value_head, networks.baseline_head):
-            head.module.compile()
+        # as the trainer's train.compile: every stage but the GRU's loop over time
+        networks.compile_networks()
     return networks
 
 
@@ -229,7 +228,9 @@ def main() -> None:
     parser.add_argument(
         "--modes", nargs="+", choices=["collect", "train"], default=["collect", "train"]
     )
-    parser.add_argument("--no-compile", action="store_true", help="time eager execution only")
+    parser.add_argument(
+        "--graphs", nargs="+", choices=["eager", "compiled"], default=["eager", "compiled"]
+    )
     parser.add_argument("--iters", type=int, default=20, help="timed calls per combination")
     parser.add_argument("--warmup", type=int, default=3, help="untimed calls after the first")
     parser.add_argument("--agents", type=int, default=8)
@@ -276,7 +277,7 @@ def main() -> None:
     }
     for mode in args.modes:
         for precision_name in args.precisions:
-            for compiled in [False] if args.no_compile else [False, True]:
+            for compiled in [graphs == "compiled" for graphs in args.graphs]:
                 # Compiled code is reused across batch sizes: after the second size dynamo
                 # marks the batch dim dynamic, so only the first rows' first calls compile.
                 torch._dynamo.reset()
