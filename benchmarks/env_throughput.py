@@ -15,15 +15,13 @@ summed by kernel name: where a step's time goes.
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import time
 from datetime import date
 from pathlib import Path
 
 import torch
 import warp as wp
+from common import device_name, write_results
 
 from terrashift_rl.envs import GROUP, TerraShiftEnv
 from terrashift_rl.sim import Simulator, TerraShiftConfig
@@ -92,17 +90,6 @@ def profile(config: TerraShiftConfig, num_envs: int, device: torch.device) -> di
     return dict(sorted(per_kernel.items(), key=lambda item: -item[1]))
 
 
-def cpu_name() -> str:
-    """The processor's model name (Linux), else what ``platform`` knows."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return f"{line.split(':', 1)[1].strip()} ({os.cpu_count()} cores)"
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -115,8 +102,8 @@ def main() -> None:
 
     device = torch.device(args.device)
     config = TerraShiftConfig.preset("pretrain", column_shape=args.column_shape)
-    device_name = torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_name()
-    print(f"TerraShift env throughput, pretrain scene ({config.column_shape}), {device_name}")
+    name = device_name(device)
+    print(f"TerraShift env throughput, pretrain scene ({config.column_shape}), {name}")
     print(f"{'num_envs':>9} | {'simulator env-steps/s':>22} | {'TorchRL env env-steps/s':>24}")
     rows = []
     for n in args.num_envs:
@@ -130,11 +117,10 @@ def main() -> None:
                 print(f"{'':>9}   {name:<40} {ms:8.3f} ms/step ({100 * ms / total:4.1f}%)")
 
     out = args.out or Path(__file__).parent / "results" / f"env_throughput_{device.type}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
     payload = {
         "benchmark": "env_throughput",
         "date": date.today().isoformat(),
-        "device": device_name,
+        "device": name,
         "torch": torch.__version__,
         "config": {
             "preset": "pretrain",
@@ -144,7 +130,7 @@ def main() -> None:
         },
         "rows": rows,
     }
-    out.write_text(json.dumps(payload, indent=2))
+    write_results(out, payload)
     print(f"wrote {out}")
 
 

@@ -16,9 +16,7 @@ Prints a table and writes JSON after every combination, so an interrupted sweep 
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import platform
 import statistics
 import time
 from dataclasses import asdict
@@ -26,6 +24,7 @@ from datetime import date
 from pathlib import Path
 
 import torch
+from common import device_name, write_results
 from tensordict import TensorDict
 from tensordict.nn import InteractionType, set_interaction_type
 from torchrl.modules import set_recurrent_mode
@@ -210,14 +209,6 @@ def format_row(row: dict) -> str:
     )
 
 
-def write_results(path: Path, payload: dict) -> None:
-    """Write ``payload`` as JSON through a temporary file, so the file is never half-written."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(path.name + ".partial")
-    partial.write_text(json.dumps(payload, indent=2))
-    partial.replace(path)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -248,12 +239,10 @@ def main() -> None:
         torch.backends.cuda.matmul.allow_tf32 = True
         torch.backends.cudnn.allow_tf32 = True
     config = TerraShiftModelConfig() if args.preset == "default" else TerraShiftModelConfig.small()
-    device_name = (
-        torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor()
-    )
+    name = device_name(device)
     print(
         f"TerraShift model throughput, {args.preset} model, {args.agents} agents, "
-        f"{args.objects} objects, {args.map_side}x{args.map_side} map, {device_name}"
+        f"{args.objects} objects, {args.map_side}x{args.map_side} map, {name}"
     )
     print(
         f"{'mode':>7} | {'prec':>4} | {'compile':>7} | {'batch':>6} | {'ms/call':>9} | "
@@ -263,7 +252,7 @@ def main() -> None:
     payload = {
         "benchmark": "model_throughput",
         "date": date.today().isoformat(),
-        "device": device_name,
+        "device": name,
         "torch": torch.__version__,
         "task": {
             "agents": args.agents,

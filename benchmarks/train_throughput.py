@@ -14,13 +14,13 @@ value-estimation pass and the epochs. Prints a table and writes JSON.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 from datetime import date
 from pathlib import Path
 
 import torch
+from common import device_name, write_results
 
 from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
@@ -132,27 +132,23 @@ def main() -> None:
     if args.warmup < 0 or args.iters < 1:
         parser.error("--warmup must be >= 0 and --iters >= 1")
     device = torch.device(args.device)
-    device_name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
-    print(f"MA-POCA training throughput, pretrain scene, {args.preset} network, {device_name}")
+    name = device_name(device)
+    print(f"MA-POCA training throughput, pretrain scene, {args.preset} network, {name}")
     print(
         "  envs | ep x mb | prec |    graphs | env-steps/s |  collect/s | coll s | est s  |"
         " epochs s | warmup s"
     )
     payload = {
         "date": date.today().isoformat(),
-        "device": device_name,
+        "device": name,
         "torch": torch.__version__,
         "preset": args.preset,
         "rows": [],
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     for setting in args.settings:
         payload["rows"].append(measure(setting, args, device))
         print(format_row(payload["rows"][-1]), flush=True)
-        # after every row, atomically: a run stopped part-way keeps what it measured
-        partial = args.out.with_suffix(".json.partial")
-        partial.write_text(json.dumps(payload, indent=2))
-        partial.replace(args.out)
+        write_results(args.out, payload)
     print(f"wrote {args.out}")
 
 

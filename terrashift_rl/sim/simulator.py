@@ -152,6 +152,12 @@ class Simulator:
         with self._ordered():
             self._launch_physics()
 
+    def events_tick(self) -> None:
+        """Runs one physics tick's events on the current state: goals, out-of-bounds,
+        respawns and the reward terms (added to ``reward``); no wave or physics."""
+        with self._ordered():
+            self._launch_events()
+
     def observe(self) -> None:
         """Recomputes the observations from the current state."""
         with self._ordered():
@@ -184,25 +190,7 @@ class Simulator:
             )
             self._launch_heights(masked=False, keep_velocity=True)
             self._launch_physics()
-            wp.launch(
-                events.tick_events,
-                dim=n,
-                inputs=[
-                    m,
-                    d.rng,
-                    d.column_height,
-                    d.goal_cell,
-                    d.sphere_active,
-                    d.spawn_timer,
-                    d.sphere_position,
-                    d.sphere_velocity,
-                    d.sphere_angular_velocity,
-                    d.goal_distance,
-                    d.reward,
-                    d.episode_goals,
-                    d.episode_out_of_bounds,
-                ],
-            )
+            self._launch_events()
         wp.launch(
             events.end_decision,
             dim=n,
@@ -301,6 +289,28 @@ class Simulator:
         if substeps % 2 == 1:
             for dst, src in zip(current, scratch, strict=True):
                 wp.copy(dst, src)
+
+    def _launch_events(self) -> None:
+        d, m = self.data, self.model
+        wp.launch(
+            events.tick_events,
+            dim=self.num_envs,
+            inputs=[
+                m,
+                d.rng,
+                d.column_height,
+                d.goal_cell,
+                d.sphere_active,
+                d.spawn_timer,
+                d.sphere_position,
+                d.sphere_velocity,
+                d.sphere_angular_velocity,
+                d.goal_distance,
+                d.reward,
+                d.episode_goals,
+                d.episode_out_of_bounds,
+            ],
+        )
 
     def _launch_observations(self) -> None:
         d, m = self.data, self.model

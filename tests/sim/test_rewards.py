@@ -9,9 +9,8 @@ import math
 import numpy as np
 import pytest
 import torch
-import warp as wp
 
-from terrashift_rl.sim import Simulator, TerraShiftConfig, events
+from terrashift_rl.sim import Simulator, TerraShiftConfig
 
 SEED = 0
 REWARD_TOL = 1e-5
@@ -66,28 +65,8 @@ def pose(sim: Simulator, spheres: list[dict], *, goal_cells=((2, 3), (11, 4), (5
 
 def tick(sim: Simulator) -> float:
     """One physics tick of goals, out-of-bounds, respawns and reward; returns env 0's reward."""
-    d, m = sim.data, sim.model
     sim.view("reward").zero_()
-    wp.launch(
-        events.tick_events,
-        dim=sim.num_envs,
-        inputs=[
-            m,
-            d.rng,
-            d.column_height,
-            d.goal_cell,
-            d.sphere_active,
-            d.spawn_timer,
-            d.sphere_position,
-            d.sphere_velocity,
-            d.sphere_angular_velocity,
-            d.goal_distance,
-            d.reward,
-            d.episode_goals,
-            d.episode_out_of_bounds,
-        ],
-        device=sim.device,
-    )
+    sim.events_tick()
     return sim.view("reward")[0].item()
 
 
