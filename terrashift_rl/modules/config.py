@@ -47,6 +47,11 @@ class TerraShiftModelConfig:
     """Features per object slot: position, goal position, velocity."""
     object_hidden_dim: int = 64
     """Hidden width of the per-slot object MLP (9 -> 64 -> d)."""
+    relative_objects: bool = False
+    """Give every agent its own object tokens, encoded from the slot's features and the offsets
+    from the agent's wavelet to the object and to its goal (13 -> 64 -> d). Off is the paper's
+    design: one token per object, shared by all agents. Reads x, y as the first two agent
+    features and as features 0-1 (object) and 3-4 (goal) of a slot, all over the platform."""
 
     heightmap_channels: int = 1
     """Channels of the heightmap observation (coordinate channels are added on top)."""

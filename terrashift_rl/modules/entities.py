@@ -17,6 +17,10 @@ class ObjectEncoder(nn.Module):
     Padded slots come out as exact zeros, so their contents cannot matter even to a consumer
     that forgot the mask (the trunk also masks them out of attention).
 
+    With ``config.relative_objects`` the encoder is called with the agents' observations too and
+    encodes one token per (agent, slot): the slot's features and the offsets from the agent's
+    wavelet to the object and to its goal, so each agent reads where things are from where it is.
+
     Args:
         config: network sizes.
 
@@ -30,14 +34,35 @@ class ObjectEncoder(nn.Module):
 
     def __init__(self, config: TerraShiftModelConfig) -> None:
         super().__init__()
+        self.relative = config.relative_objects
+        in_dim = config.object_feature_dim + (4 if self.relative else 0)
         self.mlp = nn.Sequential(
-            nn.Linear(config.object_feature_dim, config.object_hidden_dim),
+            nn.Linear(in_dim, config.object_hidden_dim),
             nn.GELU(),
             nn.Linear(config.object_hidden_dim, config.embed_dim),
         )
 
-    def forward(self, objects: Tensor, objects_mask: Tensor | None = None) -> Tensor:
-        """Encode object slots [B, M, F] (mask [B, M], True = active) into tokens [B, M, d]."""
+    def forward(
+        self,
+        objects: Tensor,
+        objects_mask: Tensor | None = None,
+        agent_observation: Tensor | None = None,
+    ) -> Tensor:
+        """Encode object slots [B, M, F] (mask [B, M], True = active) into tokens [B, M, d],
+        or, with ``relative_objects``, into per-agent tokens [B, K, M, d] given the agents'
+        observations [B, K, 9]."""
+        if self.relative:
+            if agent_observation is None:
+                raise ValueError("relative_objects needs the agents' observations")
+            agent_xy = agent_observation[..., None, 0:2]  # [B, K, 1, 2]
+            offsets = torch.cat(
+                [objects[..., None, :, 0:2] - agent_xy, objects[..., None, :, 3:5] - agent_xy],
+                dim=-1,
+            )
+            per_agent = objects.unsqueeze(-3).expand(*offsets.shape[:-1], objects.shape[-1])
+            objects = torch.cat([per_agent, offsets], dim=-1)
+            if objects_mask is not None:
+                objects_mask = objects_mask.unsqueeze(-2)
         tokens = self.mlp(objects)
         slots = torch.arange(objects.shape[-2], device=objects.device)
         tokens = tokens + sincos_code(slots, tokens.shape[-1]).to(tokens.dtype)

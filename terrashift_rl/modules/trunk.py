@@ -50,6 +50,8 @@ class ParallelCrossAttention(nn.Module):
 
     Each set has its own attention and a scalar gate logit computed from what each agent read in
     that set. Sets an environment has no valid token in (e.g. no active object) get no weight.
+    A set is shared by all agents ([B, N, d], mask [B, N]) or holds each agent's own tokens
+    ([B, K, N, d], mask [B, 1, N] or [B, K, N]).
 
     Args:
         embed_dim: width of agents and tokens.
@@ -74,16 +76,21 @@ class ParallelCrossAttention(nn.Module):
     def forward(
         self, agents: Tensor, token_sets: list[Tensor], token_masks: list[Tensor | None]
     ) -> Tensor:
-        """Fuse agents [B, K, d] with each set [B, N_s, d] (mask [B, N_s] or None)."""
+        """Fuse agents [B, K, d] with each set [B, N_s, d] or [B, K, N_s, d] (mask or None)."""
         attended = []
         gate_logits = []
         for attention, gate, tokens, mask in zip(
             self.attentions, self.gates, token_sets, token_masks, strict=True
         ):
-            read = attention(agents, tokens, mask)
+            if tokens.dim() > agents.dim():  # each agent's own set: one query per agent
+                read = attention(agents.unsqueeze(-2), tokens, mask).squeeze(-2)
+                empty = None if mask is None else ~mask.any(-1)[..., None]  # [B, 1 or K, 1]
+            else:
+                read = attention(agents, tokens, mask)
+                empty = None if mask is None else ~mask.any(-1)[..., None, None]  # [B, 1, 1]
             logit = gate(read)
-            if mask is not None:
-                logit = logit.masked_fill(~mask.any(-1)[..., None, None], float("-inf"))
+            if empty is not None:
+                logit = logit.masked_fill(empty, float("-inf"))
             attended.append(read)
             gate_logits.append(logit)
         weights = torch.softmax(torch.cat(gate_logits, dim=-1), dim=-1)
@@ -262,10 +269,13 @@ class SharedEmbeddingNetwork(nn.Module):
         objects_flat = objects.reshape(flat, *objects.shape[-2:])
         if objects_mask is not None:
             objects_mask = objects_mask.reshape(flat, -1)
-        object_tokens = self.object_encoder(objects_flat, objects_mask)
+        agent_observation = agent_observation.reshape(flat, num_agents, -1)
+        object_tokens = self.object_encoder(objects_flat, objects_mask, agent_observation)
+        if objects_mask is not None and object_tokens.dim() == 4:  # per-agent tokens
+            objects_mask = objects_mask.unsqueeze(-2)
         if agent_mask is not None:
             agent_mask = agent_mask.reshape(flat, num_agents)
-        agents = self.agent_encoder(agent_observation.reshape(flat, num_agents, -1))
+        agents = self.agent_encoder(agent_observation)
         for layer in self.layers:
             agents = layer(
                 agents, [spatial_tokens, object_tokens], [None, objects_mask], agent_mask

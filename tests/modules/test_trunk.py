@@ -9,16 +9,23 @@ import torch
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.modules import set_recurrent_mode
 
-from terrashift_rl.modules import SharedEmbeddingNetwork, TerraShiftTrunk, keys
+from terrashift_rl.modules import ObjectEncoder, SharedEmbeddingNetwork, TerraShiftTrunk, keys
+from terrashift_rl.modules.encodings import sincos_code
 
 ATOL = 1e-5
 
 
+@pytest.fixture(params=[False, True], ids=["shared-objects", "relative-objects"])
+def relative_config(request, small_config):
+    small_config.relative_objects = request.param
+    return small_config
+
+
 @pytest.fixture
-def trunk(small_config):
+def trunk(relative_config):
     torch.manual_seed(0)
     # Eval mode: these tests compare outputs, which dropout in grad-enabled passes would perturb.
-    return TerraShiftTrunk(small_config).eval()
+    return TerraShiftTrunk(relative_config).eval()
 
 
 @pytest.mark.parametrize(
@@ -74,10 +81,10 @@ def test_absent_agents_do_not_affect_present_ones(trunk, make_batch):
     )
 
 
-def test_permuting_agents_permutes_embeddings_without_agent_id_code(small_config, make_batch):
-    small_config.agent_id_code = False
+def test_permuting_agents_permutes_embeddings_without_agent_id_code(relative_config, make_batch):
+    relative_config.agent_id_code = False
     torch.manual_seed(0)
-    trunk = TerraShiftTrunk(small_config).eval()
+    trunk = TerraShiftTrunk(relative_config).eval()
     data = make_batch((3,), num_agents=5, is_init=False)
     data["agents", "recurrent_state"] = torch.randn(3, 5, 2, 32)
     permutation = torch.tensor([3, 0, 4, 1, 2])
@@ -91,6 +98,29 @@ def test_permuting_agents_permutes_embeddings_without_agent_id_code(small_config
         atol=ATOL,
         rtol=1e-4,
     )
+
+
+def test_relative_object_tokens_encode_each_agents_offsets(small_config):
+    small_config.relative_objects = True
+    torch.manual_seed(0)
+    encoder = ObjectEncoder(small_config)
+    objects, agents = torch.rand(2, 3, 9) * 2 - 1, torch.rand(2, 5, 9) * 2 - 1
+    mask = torch.tensor([[True, True, False], [True, False, True]])
+    tokens = encoder(objects, mask, agents)
+    assert tokens.shape == (2, 5, 3, small_config.embed_dim)
+    for b, k, m in [(0, 0, 0), (0, 4, 1), (1, 2, 2)]:
+        inputs = torch.cat(
+            [
+                objects[b, m],
+                objects[b, m, 0:2] - agents[b, k, 0:2],
+                objects[b, m, 3:5] - agents[b, k, 0:2],
+            ]
+        )
+        expected = encoder.mlp(inputs) + sincos_code(torch.tensor(m), small_config.embed_dim)
+        torch.testing.assert_close(tokens[b, k, m], expected)
+    assert tokens[0, :, 2].eq(0).all() and tokens[1, :, 1].eq(0).all()  # padded slots
+    with pytest.raises(ValueError, match="agents' observations"):
+        encoder(objects, mask)
 
 
 def test_agent_id_code_breaks_permutation_equivariance(trunk, make_batch):
