@@ -68,10 +68,6 @@ class TrainConfig:
     """AdamW learning rate of the value and baseline heads at the start."""
     lr_end_factor: float = 0.1
     """Both learning rates end at this fraction of their start."""
-    desired_kl: float | None = None
-    """When set, both learning rates also adapt to the policy's change: after an iteration whose
-    mean approximate KL (new to collection policy) is below half this value they grow by 1.5x,
-    above twice it they shrink by 1.5x, within 1/100 to 100x of the linear schedule."""
     weight_decay: float = 0.01
     """AdamW weight decay."""
     clip_epsilon_start: float = 0.2
@@ -112,8 +108,6 @@ class TrainConfig:
             )
         if not 0.0 < self.gamma <= 1.0 or not 0.0 <= self.lmbda <= 1.0:
             raise ValueError("train.gamma must be in (0, 1] and train.lmbda in [0, 1]")
-        if self.desired_kl is not None and not self.desired_kl > 0.0:
-            raise ValueError(f"train.desired_kl must be positive or null, got {self.desired_kl}")
         if not 0.0 <= self.value_norm_decay < 1.0:
             raise ValueError(
                 f"train.value_norm_decay must be in [0, 1), got {self.value_norm_decay}"
@@ -196,7 +190,6 @@ class MAPOCATrainer:
                 config.max_grad_norm_start, config.max_grad_norm_end, n
             ),
         }
-        self.kl_lr_factor = 1.0  # the desired_kl adaptation's multiplier of the learning rates
         self.iteration = 0
         self.env_steps = 0
         self._carry: TensorDictBase | None = None
@@ -266,8 +259,6 @@ class MAPOCATrainer:
                     sums[key] = sums.get(key, 0.0) + value.detach().float()
                 count += 1
         metrics = {key: (value / count).item() for key, value in sums.items()}
-        if config.desired_kl is not None:
-            self._adapt_learning_rates(metrics["kl_approx"])
         metrics["lr_trunk_policy"] = self.optimizer.param_groups[0]["lr"]
         metrics["clip_epsilon"] = float(self.loss.clip_epsilon)
         metrics["entropy_coeff"] = float(self.loss.entropy_coeff)
@@ -285,7 +276,6 @@ class MAPOCATrainer:
             "optimizer": self.optimizer.state_dict(),
             "iteration": self.iteration,
             "env_steps": self.env_steps,
-            "kl_lr_factor": self.kl_lr_factor,
             "train_config": asdict(self.config),
             "value_normalizer": (None if normalizer is None else normalizer.state_dict()),
             "torch_rng": torch.get_rng_state(),
@@ -308,7 +298,6 @@ class MAPOCATrainer:
             normalizer.load_state_dict(state["value_normalizer"])
         self.iteration = state["iteration"]
         self.env_steps = state["env_steps"]
-        self.kl_lr_factor = state["kl_lr_factor"]
         torch.set_rng_state(state["torch_rng"])
         if state["cuda_rng"] is not None and torch.cuda.is_available():
             torch.cuda.set_rng_state_all(state["cuda_rng"])
@@ -320,20 +309,11 @@ class MAPOCATrainer:
 
     # --- helpers ---------------------------------------------------------------------------
     def _apply_schedules(self) -> None:
-        factor = self.schedules["lr_factor"](self.iteration) * self.kl_lr_factor
+        factor = self.schedules["lr_factor"](self.iteration)
         for group, base in zip(self.optimizer.param_groups, self._base_lrs, strict=True):
             group["lr"] = base * factor
         for name in ("clip_epsilon", "entropy_coeff", "clip_value"):
             setattr(self.loss, name, self.schedules[name](self.iteration))
-
-    def _adapt_learning_rates(self, kl: float) -> None:
-        """The ``desired_kl`` rule: the next iteration's learning rates follow this one's KL."""
-        target = self.config.desired_kl
-        if kl > 2.0 * target:
-            self.kl_lr_factor /= 1.5
-        elif kl < 0.5 * target:
-            self.kl_lr_factor *= 1.5
-        self.kl_lr_factor = min(max(self.kl_lr_factor, 0.01), 100.0)
 
     def _autocast(self) -> contextlib.AbstractContextManager:
         if self.config.bf16 and self.device.type == "cuda":

@@ -129,7 +129,6 @@ def test_smoke_train_resume_and_finetune(tmp_path):
         (["+env.grid_sise=10"], "unknown key"),
         (["run.resume=missing.pt"], "no checkpoint at"),
         (["logger.kind=paper"], "logger.kind"),
-        (["train.desired_kl=0"], "desired_kl"),
     ],
 )
 def test_bad_configuration_fails_at_start_up(tmp_path, overrides, message):

@@ -62,27 +62,3 @@ def test_compiled_networks_give_the_eager_loss():
         torch.testing.assert_close(losses[1][key], value, atol=1e-4, rtol=1e-4)
     state = compiled.networks.state_dict()
     assert state.keys() == eager.networks.state_dict().keys()  # checkpoints are unchanged
-
-
-@pytest.mark.parametrize(("desired_kl", "growth"), [(10.0, 1.5), (1e-12, 1 / 1.5)])
-def test_learning_rates_follow_the_kl_of_each_iteration(desired_kl, growth):
-    trainer = make_trainer(desired_kl=desired_kl, schedule_iterations=1000)
-    first = trainer.train_iteration()
-    second = trainer.train_iteration()
-    assert first["kl_approx"] < 0.5 * desired_kl or first["kl_approx"] > 2 * desired_kl
-    schedule = trainer.schedules["lr_factor"]
-    expected = first["lr_trunk_policy"] * growth * schedule(1) / schedule(0)
-    assert second["lr_trunk_policy"] == pytest.approx(expected)
-    assert trainer.state_dict()["kl_lr_factor"] == pytest.approx(growth**2)
-    restored = make_trainer(desired_kl=desired_kl, schedule_iterations=1000)
-    restored.load_state_dict(trainer.state_dict())
-    assert restored.kl_lr_factor == trainer.kl_lr_factor
-
-
-def test_learning_rate_adaptation_stays_within_its_bounds():
-    trainer = make_trainer(desired_kl=0.01)
-    for _ in range(30):
-        trainer._adapt_learning_rates(1.0)
-    assert trainer.kl_lr_factor == 0.01
-    trainer._adapt_learning_rates(0.01)  # within [target / 2, 2 target]: unchanged
-    assert trainer.kl_lr_factor == 0.01
