@@ -142,6 +142,20 @@ class TerraShiftEnv(EnvBase):
         self.sim.step(self._checked_action(tensordict))
         return self._output(with_reward=True)
 
+    # --- training helpers -----------------------------------------------------------------
+    def stagger_episodes(self) -> None:
+        """Sets each environment's decision counter to a uniform random value in
+        [0, ``max_episode_steps``), drawn from torch's generator.
+
+        Called once after the first reset of a training run, it spreads the step limits of
+        environments that started together over a whole episode's length: without it every
+        environment truncates and resets at the same decision, and every batch right after
+        holds only early-episode states. Only the current episodes are shortened.
+        """
+        counts = self.sim.view("step_count")
+        offsets = torch.randint(self.config.max_episode_steps, counts.shape, device=self.device)
+        counts.copy_(offsets.to(counts.dtype))
+
     # --- helpers --------------------------------------------------------------------------
     def _reset_mask(self, tensordict: TensorDictBase | None) -> torch.Tensor | None:
         if tensordict is None:

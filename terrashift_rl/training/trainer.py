@@ -90,6 +90,10 @@ class TrainConfig:
     """Weight of the old return statistics at each iteration."""
     bf16: bool = False
     """Run the networks under bfloat16 autocast on CUDA."""
+    stagger_episodes: bool = True
+    """Spread the first episodes' step limits over an episode's length, so that environments do
+    not all reset at the same decision
+    (:meth:`~terrashift_rl.envs.terrashift.TerraShiftEnv.stagger_episodes`)."""
     compile: bool = False
     """``torch.compile`` the networks (all but the GRU's loop over time); the first iterations
     then include compilation."""
@@ -217,6 +221,8 @@ class MAPOCATrainer:
         """``steps_per_iteration`` decisions in every environment; returns [num_envs, T]."""
         if self._carry is None:
             self._carry = self.env.reset()
+            if self.config.stagger_episodes:
+                self.env.base_env.stagger_episodes()
         self.networks.eval()  # no dropout: the stored log-probs are the policy's own
         td = self._carry
         frames = []

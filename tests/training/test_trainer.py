@@ -62,3 +62,14 @@ def test_compiled_networks_give_the_eager_loss():
         torch.testing.assert_close(losses[1][key], value, atol=1e-4, rtol=1e-4)
     state = compiled.networks.state_dict()
     assert state.keys() == eager.networks.state_dict().keys()  # checkpoints are unchanged
+
+
+@pytest.mark.parametrize("stagger", [False, True])
+def test_first_episodes_end_together_only_without_staggering(stagger):
+    trainer = make_trainer(stagger_episodes=stagger)
+    data = trainer.collect()  # 8 decisions over 6-decision episodes
+    first_end = data["next", "truncated"].squeeze(-1).long().argmax(dim=1)
+    if stagger:
+        assert len(first_end.unique()) > 1
+    else:
+        assert (first_end == ENV.max_episode_steps - 1).all()
