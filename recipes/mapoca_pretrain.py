@@ -18,6 +18,7 @@ from typing import Any
 
 import hydra
 import torch
+from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 from torchrl.record.loggers import Logger
 from tqdm import tqdm
@@ -32,6 +33,11 @@ from terrashift_rl.training import (
     make_training_env,
     save_checkpoint,
 )
+
+# The env and model groups' files name the fields they change; these dataclasses supply the
+# others and their types, so every field can be set as `env.field=value` or `model.field=value`.
+ConfigStore.instance().store(group="env", name="schema", node=TerraShiftConfig)
+ConfigStore.instance().store(group="model", name="schema", node=TerraShiftModelConfig)
 
 
 def structured(cls: type, values: Any, group: str):

@@ -13,6 +13,9 @@ from PIL import Image
 ROOT = Path(__file__).resolve().parents[2]
 RECIPES = ROOT / "recipes"
 CONFIGS = RECIPES / "configs"
+sys.path.insert(0, str(RECIPES))
+import mapoca_pretrain  # noqa: E402, F401  (registers the env and model groups' schemas)
+
 PRIMARY = sorted(path.stem for path in CONFIGS.glob("*.yaml"))
 
 
