@@ -63,10 +63,11 @@ def test_step_limit_truncates_and_never_terminates_in_training_mode():
     assert (td["next", "done"] == td["next", "truncated"]).all()
 
 
-def test_staggered_episodes_truncate_when_their_counters_say():
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])
+def test_staggered_episodes_truncate_when_their_counters_say(device):
     torch.manual_seed(0)
     limit = 6
-    env = TerraShiftEnv(num_envs=32, seed=0, max_episode_steps=limit)
+    env = TerraShiftEnv(num_envs=32, seed=0, max_episode_steps=limit, device=device)
     td = env.reset()
     env.stagger_episodes()
     offsets = env.sim.view("step_count").clone().long()
@@ -74,14 +75,14 @@ def test_staggered_episodes_truncate_when_their_counters_say():
     assert len(offsets.unique()) > 1
     frames = []
     for action in random_actions(2 * limit, env):
-        td[GROUP, "action"] = action
+        td[GROUP, "action"] = action.to(device)
         out, td = env.step_and_maybe_reset(td)
         frames.append(out["next", "truncated"].squeeze(-1))
     truncated = torch.stack(frames, dim=1)  # [envs, decisions]
     first = truncated.long().argmax(dim=1)
     torch.testing.assert_close(first, limit - 1 - offsets)  # the first episode is shortened
     later = truncated.clone()
-    later[torch.arange(32), first] = False
+    later[torch.arange(32, device=device), first] = False
     torch.testing.assert_close(later.long().argmax(dim=1), first + limit)  # then full length
 
 

@@ -145,9 +145,11 @@ def test_default_config_matches_table_1():
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_cuda_bf16_autocast_training_pass(make_batch):
+@pytest.mark.parametrize("relative_objects", [False, True])
+def test_cuda_bf16_autocast_training_pass(make_batch, relative_objects):
     torch.manual_seed(0)
-    networks = make_terrashift_networks(TerraShiftModelConfig()).cuda().eval()
+    config = TerraShiftModelConfig(relative_objects=relative_objects)
+    networks = make_terrashift_networks(config).cuda().eval()
     data = make_batch((4, 8), num_agents=8, is_init=False).cuda()
     data["is_init"][:, 0] = True
     with set_recurrent_mode(True):
