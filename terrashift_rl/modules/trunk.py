@@ -199,7 +199,8 @@ class SharedEmbeddingNetwork(nn.Module):
     """Tensor-level trunk: heightmap, objects and agents -> per-agent embeddings and GRU state.
 
     Heightmap encoder and object encoder produce the spatial and object token sets once per
-    environment step; the agent encoder gives the agent queries; ``trunk_layers`` layers of
+    environment step (the object set once per agent with ``relative_objects``); the agent
+    encoder gives the agent queries; ``trunk_layers`` layers of
     parallel cross-attention (agents -> both sets, softmax-gated), agent self-attention and a
     feed-forward block follow; then a final LayerNorm, an MLP (d -> 192 -> d) and the GRU memory.
 
