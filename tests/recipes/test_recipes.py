@@ -56,6 +56,15 @@ def test_every_group_option_composes_into_its_dataclass(group, option):
         assert values["kind"] in ("wandb", "csv", "tensorboard", "none")
 
 
+def test_default_train_and_loss_groups_are_train_config_defaults():
+    """The recipe's defaults and the library's TrainConfig() are the same measured setting."""
+    from terrashift_rl.training import TrainConfig
+
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
+        cfg = compose(config_name="mapoca_pretrain")
+    assert TrainConfig(**{**cfg.train, **cfg.loss}) == TrainConfig()
+
+
 def run(
     script: str, *overrides: str, cwd: Path, config_name: str | None = "smoke"
 ) -> subprocess.CompletedProcess:
