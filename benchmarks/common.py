@@ -1,7 +1,8 @@
-"""What the benchmark scripts share: the device's name and how results are written."""
+"""What the benchmark scripts share: the device's name, how results are written and read."""
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import platform
@@ -30,3 +31,14 @@ def write_results(path: Path, payload: dict) -> None:
     partial = path.with_name(path.name + ".partial")
     partial.write_text(json.dumps(payload, indent=2))
     partial.replace(path)
+
+
+def read_series(folder: Path, metric: str) -> tuple[list[float], list[float]]:
+    """Steps and values of one metric of a torchrl CSVLogger ``scalars`` folder (``<metric>.csv``
+    of ``step,value`` rows); empty lists if the run did not log it."""
+    path = folder / f"{metric}.csv"
+    if not path.is_file():
+        return [], []
+    with path.open() as file:
+        rows = [(float(step), float(value)) for step, value in csv.reader(file)]
+    return [step for step, _ in rows], [value for _, value in rows]

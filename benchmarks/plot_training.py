@@ -11,9 +11,9 @@ env-steps, with an optional reference line in the reward panel.
 from __future__ import annotations
 
 import argparse
-import csv
 from pathlib import Path
 
+from common import read_series
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
@@ -22,15 +22,6 @@ PANELS = (
     ("success_rate", "success rate (goals / resolved)"),
     ("env_steps_per_s", "env-steps/s (collection + update)"),
 )
-
-
-def read_series(folder: Path, metric: str) -> tuple[list[float], list[float]]:
-    path = folder / f"{metric}.csv"
-    if not path.is_file():
-        return [], []
-    with path.open() as file:
-        rows = [(float(step), float(value)) for step, value in csv.reader(file)]
-    return [step for step, _ in rows], [value for _, value in rows]
 
 
 def main() -> None:
