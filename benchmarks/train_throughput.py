@@ -27,6 +27,7 @@ from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training import MAPOCATrainer, TrainConfig, make_training_env
 
 DEFAULT_SETTINGS = [
+    "2048:2:8:fp32:eager",  # the default recipe
     "4096:2:8:fp32:eager",
     "4096:2:8:bf16:compiled",
     "8192:1:4:bf16:compiled",
