@@ -11,6 +11,7 @@ Outputs (checkpoints, logs, resolved config) go to Hydra's run directory.
 from __future__ import annotations
 
 import dataclasses
+import math
 import signal
 import time
 from pathlib import Path
@@ -94,8 +95,34 @@ def make_logger(cfg: DictConfig, run_dir: Path, run_id: str | None) -> Logger | 
     raise ValueError(f"logger.kind must be wandb, csv, tensorboard or none, got {kind!r}")
 
 
-def checkpoint_state(trainer: MAPOCATrainer, configs: dict, run_id: str | None) -> dict:
-    return {**trainer.state_dict(), **configs, "logger_run_id": run_id}
+def checkpoint_state(
+    trainer: MAPOCATrainer, configs: dict, run_id: str | None, best: dict[str, Any]
+) -> dict:
+    return {**trainer.state_dict(), **configs, "logger_run_id": run_id, "best": best}
+
+
+def update_best(
+    best: dict[str, Any],
+    reward: float,
+    window: int,
+    trainer: MAPOCATrainer,
+    configs: dict,
+    path: Path,
+) -> None:
+    """Adds an iteration's reward per decision to ``best``'s window; when the window's mean is
+    the highest yet, writes the networks and configs to ``path`` (what evaluate.py reads)."""
+    best["recent"] = [*best["recent"], reward][-window:]
+    mean = sum(best["recent"]) / len(best["recent"])
+    if len(best["recent"]) == window and mean > best["reward"]:
+        best["reward"] = mean
+        state = {
+            "networks": trainer.networks.state_dict(),
+            **configs,
+            "iteration": trainer.iteration,
+            "env_steps": trainer.env_steps,
+            "mean_reward_per_decision": mean,
+        }
+        save_checkpoint(state, path)
 
 
 def train(cfg: DictConfig) -> Path:
@@ -109,6 +136,9 @@ def train(cfg: DictConfig) -> Path:
         "train/loss",
     )
     train_config.validate()
+    window = cfg.run.best_window
+    if isinstance(window, bool) or not isinstance(window, int) or window < 0:
+        raise ValueError(f"run.best_window must be an integer >= 0 (0: no best.pt), got {window!r}")
     device = resolve_device(cfg.run.device)
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
     checkpoints = run_dir / "checkpoints"
@@ -146,9 +176,11 @@ def train(cfg: DictConfig) -> Path:
     )
     trainer = MAPOCATrainer(env, networks, train_config)
     run_id = None
+    best = {"reward": -math.inf, "recent": []}
     if resume is not None:
         trainer.load_state_dict(resume)
         run_id = resume["logger_run_id"]
+        best = resume.get("best", best)
     logger = make_logger(cfg, run_dir, run_id)
     if logger is not None and hasattr(logger, "experiment") and run_id is None:
         run_id = getattr(logger.experiment, "id", None)
@@ -179,13 +211,16 @@ def train(cfg: DictConfig) -> Path:
             if logger is not None:
                 for name, value in metrics.items():
                     logger.log_scalar(name, value, step=trainer.env_steps)
+            if window:
+                reward = metrics["reward_per_decision"]
+                update_best(best, reward, window, trainer, configs, checkpoints / "best.pt")
             if trainer.iteration % cfg.run.checkpoint_every == 0:
-                save_checkpoint(checkpoint_state(trainer, configs, run_id), last)
+                save_checkpoint(checkpoint_state(trainer, configs, run_id, best), last)
     except KeyboardInterrupt:
         progress.write("interrupted: saving a checkpoint to resume from")
     finally:
         progress.close()
-        save_checkpoint(checkpoint_state(trainer, configs, run_id), last)
+        save_checkpoint(checkpoint_state(trainer, configs, run_id, best), last)
         if (
             logger is not None
             and hasattr(logger, "experiment")

@@ -134,10 +134,51 @@ def test_smoke_train_resume_and_finetune(tmp_path):
         assert video.n_frames >= 2  # the reset frame and one per decision (GIFs merge repeats)
 
 
+def test_best_checkpoint_holds_the_best_windowed_reward(tmp_path):
+    result = run(
+        "mapoca_pretrain.py",
+        "run.total_env_steps=128",
+        "run.best_window=2",
+        "logger=csv",
+        "hydra.run.dir=a",
+        cwd=tmp_path,
+    )
+    assert result.returncode == 0, result.stderr
+    logged = (tmp_path / "a/logs/smoke/scalars/reward_per_decision.csv").read_text().split()
+    rows = [row.split(",") for row in logged]
+    steps, rewards = [int(step) for step, _ in rows], [float(reward) for _, reward in rows]
+    means = [(rewards[i - 1] + rewards[i]) / 2 for i in range(1, len(rewards))]
+    best_index = max(range(len(means)), key=means.__getitem__)
+    best = torch.load(tmp_path / "a/checkpoints/best.pt", weights_only=False)
+    assert len(rewards) == 4
+    assert best["mean_reward_per_decision"] == pytest.approx(means[best_index], rel=1e-6)
+    assert best["env_steps"] == steps[best_index + 1]
+    assert best["iteration"] == best_index + 2
+    last = torch.load(tmp_path / "a/checkpoints/last.pt", weights_only=False)
+    assert last["best"]["reward"] == best["mean_reward_per_decision"]
+    assert last["best"]["recent"] == pytest.approx(rewards[-2:], rel=1e-6)
+    # best.pt is what evaluate.py and finetuning read
+    evaluation = run(
+        "evaluate.py",
+        "checkpoint=a/checkpoints/best.pt",
+        "episodes=2",
+        "device=cpu",
+        "video.steps=0",
+        "baselines=false",
+        "hydra.run.dir=e",
+        cwd=tmp_path,
+        config_name=None,
+    )
+    assert evaluation.returncode == 0, evaluation.stderr
+    report = json.loads((tmp_path / "e/evaluation.json").read_text())
+    assert report["checkpoint_env_steps"] == best["env_steps"]
+
+
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
         (["train.minibatches=99"], "minibatches"),
+        (["run.best_window=-1"], "run.best_window"),
         (["+env.grid_sise=10"], "unknown key"),
         (["run.resume=missing.pt"], "no checkpoint at"),
         (["logger.kind=paper"], "logger.kind"),
