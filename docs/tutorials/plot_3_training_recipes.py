@@ -56,7 +56,9 @@ print(
 
 # %%
 # The run directory holds the resolved config, the logs and the checkpoint ``last.pt``,
-# written every ``run.checkpoint_every`` iterations, at the end, and on Ctrl-C or SIGTERM.
+# written every ``run.checkpoint_every`` iterations, at the end, and on Ctrl-C or SIGTERM, and
+# ``best.pt``: the networks at the best mean reward per decision over ``run.best_window``
+# iterations, for evaluation or finetuning.
 
 for path in sorted(run.rglob("*")):
     if path.is_file() and "scalars" not in path.parts:
