@@ -94,6 +94,10 @@ class TerraShiftNetworks(nn.Module):
             },
             out_keys=[keys.ACTION],
             distribution_class=ScaledBeta,
+            # The concentrations are positive by construction; checking them (and every
+            # log-prob's argument) would cost a host synchronisation per call and forbid
+            # capturing acting and updating as CUDA graphs.
+            distribution_kwargs={"validate_args": False},
             return_log_prob=True,
             log_prob_key=keys.ACTION_LOG_PROB,
         )

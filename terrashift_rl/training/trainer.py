@@ -5,7 +5,8 @@ iteration collects ``steps_per_iteration`` decisions in every environment with t
 policy (dropout off), runs the value-estimation pass once (GAE from the centralised value,
 counterfactual baselines from the collection-time parameters), then runs ``epochs`` passes of
 shuffled mini-batches. Mini-batches are whole per-environment sequences, and the GRU runs over
-them from the state stored at each sequence start (torchrl's recurrent mode).
+them from the state stored at each sequence start (torchrl's recurrent mode). On CUDA the
+actor's step and each mini-batch update are replayed as CUDA graphs (``cuda_graphs``).
 
 The collection loop is written out (``env.step_and_maybe_reset``) rather than delegated to a
 collector, because a checkpoint has to hold the tensordict carried between iterations and the
@@ -17,7 +18,7 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -32,6 +33,7 @@ from terrashift_rl.envs import TerraShiftEnv
 from terrashift_rl.modules import TerraShiftNetworks, keys
 from terrashift_rl.objectives import MAPOCALoss, ValueNormalizer
 from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.training.graphs import CudaGraphed
 from terrashift_rl.training.schedules import LinearSchedule
 
 # Collection writes these as by-products of acting; every pass of the update recomputes them
@@ -95,6 +97,9 @@ class TrainConfig:
     """Weight of the old return statistics at each iteration."""
     bf16: bool = False
     """Run the networks under bfloat16 autocast on CUDA."""
+    tf32: bool = True
+    """On CUDA, let float32 matrix products use TensorFloat-32 tensor cores (sets the
+    process-wide ``torch.backends.cuda.matmul.allow_tf32``)."""
     stagger_episodes: bool = True
     """Spread the first episodes' step limits over an episode's length, so that environments do
     not all reset at the same decision
@@ -102,6 +107,10 @@ class TrainConfig:
     compile: bool = False
     """``torch.compile`` the networks (all but the GRU's loop over time); the first iterations
     then include compilation."""
+    cuda_graphs: bool = True
+    """On CUDA, replay the actor's collection step and the mini-batch update (loss, backward,
+    clipping, AdamW) as CUDA graphs (:class:`~terrashift_rl.training.graphs.CudaGraphed`);
+    ignored on other devices."""
 
     def validate(self) -> None:
         """Raises ``ValueError`` for impossible combinations, saying what to change."""
@@ -187,6 +196,16 @@ class MAPOCATrainer:
             weight_decay=config.weight_decay,
         )
         self._base_lrs = [config.lr_trunk_policy, config.lr_value_baseline]
+        self._graphs = config.cuda_graphs and self.device.type == "cuda"
+        if self.device.type == "cuda":
+            torch.backends.cuda.matmul.allow_tf32 = config.tf32
+        self._prepare_optimizer()
+        self._parameters = [p for group in self.optimizer.param_groups for p in group["params"]]
+        # a tensor updated in place, so that a captured update reads each iteration's value
+        self._max_grad_norm = torch.tensor(config.max_grad_norm_start, device=self.device)
+        self._actor_inputs = networks.actor.in_keys
+        self._actor_outputs = [k for k in networks.actor.out_keys if k not in _RECOMPUTED_KEYS]
+        self._reset_graphs()
         n = config.schedule_iterations
         self.schedules = {
             "lr_factor": LinearSchedule(1.0, config.lr_end_factor, n),
@@ -233,11 +252,15 @@ class MAPOCATrainer:
         frames = []
         with set_exploration_type(ExplorationType.RANDOM), self._autocast():
             for _ in range(self.config.steps_per_iteration):
-                td = self.networks.actor(td)
+                inputs = td.select(*self._actor_inputs, strict=False)
+                td.update(self._actor_step(inputs).clone())  # a graph's outputs are reused
                 step, td = self.env.step_and_maybe_reset(td)
-                frames.append(step.exclude(*_RECOMPUTED_KEYS))
-        self._carry = td.exclude(*_RECOMPUTED_KEYS)
+                frames.append(step)
+        self._carry = td
         return torch.stack(frames, dim=1)
+
+    def _act(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return self.networks.actor(tensordict).select(*self._actor_outputs)
 
     def update(self, data: TensorDictBase) -> dict[str, float]:
         """Value estimation once, then epochs of shuffled mini-batches of sequences."""
@@ -250,31 +273,39 @@ class MAPOCATrainer:
         self._synchronize()
         estimation_seconds = time.perf_counter() - start
         self.networks.train()
-        parameters = [p for group in self.optimizer.param_groups for p in group["params"]]
-        max_grad_norm = self.schedules["max_grad_norm"](self.iteration)
         sums: dict[str, torch.Tensor] = {}
         count = 0
         for _ in range(config.epochs):
             order = torch.randperm(data.shape[0], device=self.device)
             for index in order.chunk(config.minibatches):
-                with set_recurrent_mode(True), self._autocast():
-                    out = self.loss(data[index])
-                total = sum(value for key, value in out.items() if key.startswith("loss_"))
-                self.optimizer.zero_grad(set_to_none=True)
-                total.backward()
-                grad_norm = torch.nn.utils.clip_grad_norm_(parameters, max_grad_norm)
-                self.optimizer.step()
-                out.set("grad_norm", grad_norm)
-                out.set("loss_total", total.detach())
+                if len(index) not in self._update_steps:  # one graph per mini-batch size
+                    self._update_steps[len(index)] = self._graphed(self._update_step)
+                out = self._update_steps[len(index)](data[index])
                 for key, value in out.items():
-                    sums[key] = sums.get(key, 0.0) + value.detach().float()
+                    sums[key] = sums.get(key, 0.0) + value.float()
                 count += 1
         metrics = {key: (value / count).item() for key, value in sums.items()}
-        metrics["lr_trunk_policy"] = self.optimizer.param_groups[0]["lr"]
+        metrics["lr_trunk_policy"] = float(self.optimizer.param_groups[0]["lr"])
         metrics["clip_epsilon"] = float(self.loss.clip_epsilon)
         metrics["entropy_coeff"] = float(self.loss.entropy_coeff)
         metrics["estimation_seconds"] = estimation_seconds
         return metrics
+
+    def _update_step(self, batch: TensorDictBase) -> TensorDictBase:
+        """One gradient step on a mini-batch; returns the loss terms and diagnostics."""
+        with set_recurrent_mode(True), self._autocast():
+            out = self.loss(batch)
+        total = sum(value for key, value in out.items() if key.startswith("loss_"))
+        self.optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        # clip_grad_norm_ reads max_norm on the host; this keeps it a tensor
+        grads = [p.grad for p in self._parameters if p.grad is not None]
+        grad_norm = torch.nn.utils.get_total_norm(grads)
+        torch._foreach_mul_(grads, (self._max_grad_norm / (grad_norm + 1e-6)).clamp(max=1.0))
+        self.optimizer.step()
+        out.set("grad_norm", grad_norm)
+        out.set("loss_total", total)
+        return out.detach()
 
     # --- checkpoints -----------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
@@ -317,18 +348,45 @@ class MAPOCATrainer:
         )
         carry = state["carry"]
         self._carry = None if carry is None else carry.to(self.device)
+        self._prepare_optimizer()
+        self._reset_graphs()  # the optimiser's state tensors are new
 
     # --- helpers ---------------------------------------------------------------------------
     def _apply_schedules(self) -> None:
         factor = self.schedules["lr_factor"](self.iteration)
         for group, base in zip(self.optimizer.param_groups, self._base_lrs, strict=True):
-            group["lr"] = base * factor
+            if isinstance(group["lr"], torch.Tensor):
+                group["lr"].fill_(base * factor)
+            else:
+                group["lr"] = base * factor
+        # the loss's coefficients are buffers: assigning a float copies in place
         for name in ("clip_epsilon", "entropy_coeff", "clip_value"):
             setattr(self.loss, name, self.schedules[name](self.iteration))
+        self._max_grad_norm.fill_(self.schedules["max_grad_norm"](self.iteration))
+
+    def _prepare_optimizer(self) -> None:
+        """With CUDA graphs, AdamW must be capturable (its step count on the device) and its
+        learning rates tensors; this also converts the state of a checkpoint taken either way."""
+        for group in self.optimizer.param_groups:
+            group["capturable"] = self._graphs
+            lr = float(group["lr"])
+            group["lr"] = torch.tensor(lr, device=self.device) if self._graphs else lr
+        step_device = self.device if self._graphs else torch.device("cpu")
+        for state in self.optimizer.state.values():
+            if "step" in state:
+                state["step"] = state["step"].to(step_device, torch.float32)
+
+    def _graphed(self, function: Callable[[TensorDictBase], TensorDictBase]) -> Callable:
+        return CudaGraphed(function) if self._graphs else function
+
+    def _reset_graphs(self) -> None:
+        self._actor_step = self._graphed(self._act)
+        self._update_steps: dict[int, Callable] = {}
 
     def _autocast(self) -> contextlib.AbstractContextManager:
         if self.config.bf16 and self.device.type == "cuda":
-            return torch.autocast("cuda", dtype=torch.bfloat16)
+            # cached casts of the weights are freed on exit: a graph must not keep them
+            return torch.autocast("cuda", dtype=torch.bfloat16, cache_enabled=not self._graphs)
         return contextlib.nullcontext()
 
     def _synchronize(self) -> None:

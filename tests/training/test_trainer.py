@@ -1,13 +1,20 @@
-"""MAPOCATrainer's value-estimation shortcut and its compiled networks, on the real environment."""
+"""MAPOCATrainer on the real environment: the value-estimation shortcut, compiled networks, and
+CUDA-graph replay of acting and updating against eager execution."""
+
+import copy
+import dataclasses
 
 import pytest
 import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import ValueEstimators
 
-from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
+from terrashift_rl.modules import TerraShiftModelConfig, keys, make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training import MAPOCATrainer, TrainConfig, make_training_env
+from terrashift_rl.training.graphs import CudaGraphed
 
 ENV = TerraShiftConfig(
     grid_size=8,
@@ -19,6 +26,9 @@ ENV = TerraShiftConfig(
     heightmap_resolution=16,
 )
 ESTIMATED = ("state_value", "value_target", ("agents", "baseline"), ("agents", "advantage"))
+CUDA = torch.device("cuda")
+# no dropout: eager and replayed updates then draw no random numbers and must agree
+MODEL = dataclasses.replace(TerraShiftModelConfig.small(), dropout=0.0)
 
 
 def make_trainer(**train) -> MAPOCATrainer:
@@ -73,3 +83,107 @@ def test_first_episodes_end_together_only_without_staggering(stagger):
         assert len(first_end.unique()) > 1
     else:
         assert (first_end == ENV.max_episode_steps - 1).all()
+
+
+def test_a_checkpoint_with_capturable_adamw_resumes_without_cuda_graphs():
+    trainer = make_trainer()
+    trainer.train_iteration()
+    state = trainer.state_dict()
+    # as written on CUDA with train.cuda_graphs: tensor learning rates, capturable AdamW
+    for group in state["optimizer"]["param_groups"]:
+        group["lr"], group["capturable"] = torch.tensor(group["lr"]), True
+    resumed = make_trainer()
+    resumed.load_state_dict(state)
+    for group in resumed.optimizer.param_groups:
+        assert isinstance(group["lr"], float) and not group["capturable"]
+    resumed.train_iteration()  # AdamW would refuse tensor rates or a device step count here
+    assert resumed.iteration == 2
+
+
+def test_cuda_graphed_refuses_a_tensordict_off_cuda():
+    graphed = CudaGraphed(lambda td: td)
+    with pytest.raises(ValueError, match="CUDA device, got device cpu"):
+        graphed(TensorDict({"x": torch.ones(2)}, [2], device="cpu"))
+    assert graphed.calls == 0
+
+
+@pytest.mark.gpu
+def test_replayed_function_reads_each_calls_inputs():
+    graphed = CudaGraphed(lambda td: TensorDict({"y": td["x"].square().cumsum(0)}, [3]))
+    for call in range(5):
+        x = torch.randn(3, device=CUDA)
+        out = graphed(TensorDict({"x": x}, [3], device=CUDA))
+        torch.testing.assert_close(out["y"], x.square().cumsum(0))
+        assert graphed.captured == (call >= graphed.warmup)
+
+
+@pytest.mark.gpu
+def test_replayed_actor_step_gives_the_eager_outputs():
+    networks = make_terrashift_networks(MODEL).to(CUDA).eval()
+    env = make_training_env(ENV, networks, num_envs=5, device=CUDA, seed=0)
+    outputs = [keys.ACTION, keys.ACTION_LOG_PROB, keys.NEXT_RECURRENT_STATE]
+    graphed = CudaGraphed(lambda td: networks.actor(td).select(*outputs))
+    td = env.reset()
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        for _ in range(5):
+            inputs = td.select(*networks.actor.in_keys, strict=False)
+            replayed = graphed(inputs.clone()).clone()
+            eager = networks.actor(inputs.clone()).select(*outputs)
+            for key in outputs:
+                torch.testing.assert_close(replayed[key], eager[key])
+            td = env.step_and_maybe_reset(td.update(eager))[1]
+    assert graphed.captured
+    # sampling inside the graph draws new numbers at every replay
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        sampled = [graphed(inputs.clone())[keys.ACTION].clone() for _ in range(2)]
+    assert not torch.equal(*sampled)
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("bf16", [False, True])
+def test_replayed_updates_give_the_eager_parameters(bf16):
+    torch.manual_seed(0)
+    networks = make_terrashift_networks(MODEL)
+    # the schedules change between the two updates below
+    config = TrainConfig(
+        num_envs=8,
+        steps_per_iteration=8,
+        epochs=2,
+        minibatches=4,
+        schedule_iterations=3,
+        tf32=False,
+        bf16=bf16,
+    )
+    trainers = {}
+    for graphs in (False, True):
+        copied = copy.deepcopy(networks).to(CUDA)
+        env = make_training_env(ENV, copied, num_envs=8, device=CUDA, seed=0)
+        trainers[graphs] = MAPOCATrainer(
+            env, copied, dataclasses.replace(config, cuda_graphs=graphs)
+        )
+    data = trainers[False].collect()
+    for iteration in range(2):
+        metrics = {}
+        for graphs, trainer in trainers.items():
+            torch.manual_seed(iteration)  # the same mini-batch order
+            trainer.iteration = iteration
+            metrics[graphs] = trainer.update(data.clone())
+        for name, value in metrics[False].items():
+            if name.endswith("_seconds"):
+                continue
+            # a clip fraction counts samples past a threshold: rounding can move one of 128
+            tolerance = 0.02 if name.endswith("clip_fraction") else 1e-4
+            assert metrics[True][name] == pytest.approx(value, rel=1e-2, abs=tolerance), name
+    assert all(step.captured for step in trainers[True]._update_steps.values())
+    assert metrics[True]["lr_trunk_policy"] < config.lr_trunk_policy  # the schedule moved
+    # Adam turns rounding-level gradient differences into whole steps where a gradient is
+    # near zero, so compare the parameters' distance against how far the 16 steps moved them.
+    start = networks.state_dict()
+    eager, replayed = (trainers[g].networks.state_dict() for g in (False, True))
+    moved = apart = 0.0
+    for name, value in eager.items():
+        if value.is_floating_point():
+            moved += (value.cpu() - start[name]).square().sum().item()
+            apart += (replayed[name] - value).square().sum().item()
+    assert moved > 0
+    assert apart**0.5 < 0.01 * moved**0.5
