@@ -1,13 +1,13 @@
 """End-to-end training throughput: MAPOCATrainer iterations, collection and update together.
 
-Each setting (environments, epochs, mini-batches, precision, compilation) trains the default
+Each setting (environments, epochs, mini-batches, precision, execution) trains the default
 network on the pretrain scene for ``--warmup`` untimed iterations (compilation and the first
 allocations happen there), then ``--iters`` timed ones. Reported per setting: env-steps/s of
 whole iterations, collection alone, and how an iteration's seconds split into collection, the
 value-estimation pass and the epochs. Prints a table and writes JSON.
 
     python benchmarks/train_throughput.py --device cuda
-    python benchmarks/train_throughput.py --settings 4096:2:8:bf16:compiled 8192:1:4:bf16:compiled
+    python benchmarks/train_throughput.py --settings 2048:2:8:fp32:graphs 2048:2:8:fp32:eager
     python benchmarks/train_throughput.py --device cpu --settings 8:1:2:fp32:eager --preset small
 """
 
@@ -26,8 +26,11 @@ from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_network
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training import MAPOCATrainer, TrainConfig, make_training_env
 
+PRECISIONS = ("fp32", "tf32", "bf16")  # tf32: float32 with TensorFloat-32 matrix products
+EXECUTIONS = ("eager", "graphs", "compiled")  # compiled: torch.compile, no CUDA graphs
 DEFAULT_SETTINGS = [
-    "2048:2:8:fp32:eager",  # the default recipe
+    "2048:2:8:fp32:graphs",  # the default recipe
+    "2048:2:8:fp32:eager",
     "4096:2:8:fp32:eager",
     "4096:2:8:bf16:compiled",
     "8192:1:4:bf16:compiled",
@@ -36,11 +39,12 @@ DEFAULT_SETTINGS = [
 
 
 def parse_setting(text: str) -> dict:
-    """``envs:epochs:minibatches:precision:compilation``, e.g. ``4096:2:8:bf16:compiled``."""
+    """``envs:epochs:minibatches:precision:execution``, e.g. ``2048:2:8:fp32:graphs``."""
     parts = text.split(":")
-    if len(parts) != 5 or parts[3] not in ("fp32", "bf16") or parts[4] not in ("eager", "compiled"):
+    if len(parts) != 5 or parts[3] not in PRECISIONS or parts[4] not in EXECUTIONS:
         raise argparse.ArgumentTypeError(
-            f"setting {text!r} is not envs:epochs:minibatches:(fp32|bf16):(eager|compiled)"
+            f"setting {text!r} is not envs:epochs:minibatches:"
+            f"({'|'.join(PRECISIONS)}):({'|'.join(EXECUTIONS)})"
         )
     try:
         envs, epochs, minibatches = (int(part) for part in parts[:3])
@@ -53,7 +57,7 @@ def parse_setting(text: str) -> dict:
         "epochs": epochs,
         "minibatches": minibatches,
         "precision": parts[3],
-        "compiled": parts[4] == "compiled",
+        "execution": parts[4],
     }
 
 
@@ -66,7 +70,9 @@ def measure(setting: dict, args: argparse.Namespace, device: torch.device) -> di
         epochs=setting["epochs"],
         minibatches=setting["minibatches"],
         bf16=setting["precision"] == "bf16",
-        compile=setting["compiled"],
+        tf32=setting["precision"] != "fp32",
+        compile=setting["execution"] == "compiled",
+        cuda_graphs=setting["execution"] == "graphs",
     )
     env = make_training_env(
         TerraShiftConfig.preset("pretrain"),
@@ -108,7 +114,7 @@ def measure(setting: dict, args: argparse.Namespace, device: torch.device) -> di
 def format_row(row: dict) -> str:
     name = (
         f"{row['num_envs']:>6} | {row['epochs']}x{row['minibatches']:<3} | {row['precision']} | "
-        f"{'compiled' if row['compiled'] else 'eager':>8}"
+        f"{row['execution']:>8}"
     )
     return (
         f"{name} | {row['env_steps_per_s']:>10,.0f} | {row['collection_steps_per_s']:>10,.0f} | "
@@ -136,7 +142,7 @@ def main() -> None:
     name = device_name(device)
     print(f"MA-POCA training throughput, pretrain scene, {args.preset} network, {name}")
     print(
-        "  envs | ep x mb | prec |    graphs | env-steps/s |  collect/s | coll s | est s  |"
+        "  envs | ep x mb | prec |     exec | env-steps/s |  collect/s | coll s | est s  |"
         " epochs s | warmup s"
     )
     payload = {
