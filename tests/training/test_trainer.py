@@ -133,10 +133,12 @@ def test_replayed_actor_step_gives_the_eager_outputs():
                 torch.testing.assert_close(replayed[key], eager[key])
             td = env.step_and_maybe_reset(td.update(eager))[1]
     assert graphed.captured
-    # sampling inside the graph draws new numbers at every replay
+    # a graph captured while sampling (as collection does) draws new numbers at every replay
+    sampler = CudaGraphed(lambda td: networks.actor(td).select(keys.ACTION))
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
-        sampled = [graphed(inputs.clone())[keys.ACTION].clone() for _ in range(2)]
-    assert not torch.equal(*sampled)
+        sampled = [sampler(inputs.clone())[keys.ACTION].clone() for _ in range(4)]
+    assert sampler.captured
+    assert not torch.equal(sampled[-2], sampled[-1])  # two replays
 
 
 @pytest.mark.gpu
@@ -186,4 +188,6 @@ def test_replayed_updates_give_the_eager_parameters(bf16):
             moved += (value.cpu() - start[name]).square().sum().item()
             apart += (replayed[name] - value).square().sum().item()
     assert moved > 0
-    assert apart**0.5 < 0.01 * moved**0.5
+    # bfloat16 keeps 8 significant bits, so its rounding differences are larger: 4% of the
+    # movement on an H100, against under 1% in float32
+    assert apart**0.5 < (0.1 if bf16 else 0.01) * moved**0.5
