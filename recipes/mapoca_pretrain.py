@@ -95,6 +95,29 @@ def make_logger(cfg: DictConfig, run_dir: Path, run_id: str | None) -> Logger | 
     raise ValueError(f"logger.kind must be wandb, csv, tensorboard or none, got {kind!r}")
 
 
+# How the networks execute, not what they learn: a run may resume with other values.
+EXECUTION_SETTINGS = ("bf16", "tf32", "compile", "cuda_graphs")
+
+
+def check_resumable(resume: dict, configs: dict, cfg: DictConfig) -> None:
+    """Raises unless the checkpoint ``resume`` was trained with ``configs`` (env, model, train
+    and loss settings, execution settings aside), naming the overrides that would continue it."""
+    differ = []
+    for name, group in (("env_config", "env"), ("model_config", "model"), ("train_config", "")):
+        for key, value in configs[name].items():
+            saved = resume[name].get(key)
+            if saved == value or (name == "train_config" and key in EXECUTION_SETTINGS):
+                continue
+            prefix = group or ("loss" if key in cfg.loss else "train")
+            differ.append(f"{prefix}.{key}={'null' if saved is None else saved}")
+    if differ:
+        raise ValueError(
+            f"run.resume={cfg.run.resume} was trained with other settings; add "
+            f"{' '.join(differ)} to continue it (or start a new run from its weights with "
+            "run.pretrained)"
+        )
+
+
 def checkpoint_state(
     trainer: MAPOCATrainer, configs: dict, run_id: str | None, best: dict[str, Any]
 ) -> dict:
@@ -148,17 +171,7 @@ def train(cfg: DictConfig) -> Path:
     }
     resume = load_checkpoint(cfg.run.resume) if cfg.run.resume else None
     if resume is not None:
-        for name in ("env_config", "model_config"):
-            if resume[name] != configs[name]:
-                raise ValueError(
-                    f"run.resume={cfg.run.resume} was trained with a different {name}; resume "
-                    "with the same env and model settings (or start a finetuning run)"
-                )
-        if resume["train_config"]["num_envs"] != train_config.num_envs:
-            raise ValueError(
-                f"run.resume holds {resume['train_config']['num_envs']} environments; set "
-                f"train.num_envs={resume['train_config']['num_envs']} to continue it"
-            )
+        check_resumable(resume, {**configs, "train_config": dataclasses.asdict(train_config)}, cfg)
 
     # --- setup -------------------------------------------------------------------------------
     torch.manual_seed(cfg.run.seed)

@@ -190,14 +190,19 @@ def test_bad_configuration_fails_at_start_up(tmp_path, overrides, message):
     assert message in result.stderr
 
 
-def test_resume_rejects_an_incompatible_checkpoint(tmp_path):
-    assert run("mapoca_pretrain.py", "hydra.run.dir=b", cwd=tmp_path).returncode == 0
+def test_resume_names_the_settings_that_differ_from_the_checkpoints(tmp_path):
+    first = run("mapoca_pretrain.py", "train.minibatches=1", "hydra.run.dir=b", cwd=tmp_path)
+    assert first.returncode == 0, first.stderr
     result = run(
         "mapoca_pretrain.py",
         "run.resume=b/checkpoints/last.pt",
         "model.embed_dim=64",
+        "loss.gamma=0.9",
+        "+train.compile=true",  # how the networks execute may change
         "hydra.run.dir=y",
         cwd=tmp_path,
     )
     assert result.returncode != 0
-    assert "different model_config" in result.stderr
+    assert "add model.embed_dim=32 train.minibatches=1 loss.gamma=0.95 to continue" in (
+        result.stderr
+    )
