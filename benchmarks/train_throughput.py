@@ -1,19 +1,23 @@
 """End-to-end training throughput: MAPOCATrainer iterations, collection and update together.
 
-Each setting (environments, epochs, mini-batches, precision, execution) trains the default
-network on the pretrain scene for ``--warmup`` untimed iterations (compilation and the first
-allocations happen there), then ``--iters`` timed ones. Reported per setting: env-steps/s of
-whole iterations, collection alone, and how an iteration's seconds split into collection, the
-value-estimation pass and the epochs. Prints a table and writes JSON.
+Each setting (environments, epochs, mini-batches, precision, execution) trains the network
+(``--preset``, with ``--model`` fields replaced) on the pretrain scene for ``--warmup`` untimed
+iterations (compilation and the first allocations happen there), then ``--iters`` timed ones.
+Reported per setting: env-steps/s of whole iterations, collection alone, and how an
+iteration's seconds split into collection, the value-estimation pass and the epochs. Prints a
+table and writes JSON.
 
     python benchmarks/train_throughput.py --device cuda
     python benchmarks/train_throughput.py --settings 2048:2:8:fp32:graphs 2048:2:8:fp32:eager
     python benchmarks/train_throughput.py --device cpu --settings 8:1:2:fp32:eager --preset small
+    python benchmarks/train_throughput.py --settings 2048:2:8:tf32:graphs --model embed_dim=64
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
+import dataclasses
 import statistics
 import time
 from datetime import date
@@ -61,9 +65,25 @@ def parse_setting(text: str) -> dict:
     }
 
 
+def parse_model_field(text: str) -> tuple[str, object]:
+    """``field=value`` of TerraShiftModelConfig, the value a Python literal: ``embed_dim=64``."""
+    field, sep, value = text.partition("=")
+    fields = {f.name for f in dataclasses.fields(TerraShiftModelConfig)}
+    if not sep or field not in fields:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not FIELD=VALUE with FIELD one of TerraShiftModelConfig's: "
+            + ", ".join(sorted(fields))
+        )
+    try:
+        return field, ast.literal_eval(value)
+    except (ValueError, SyntaxError):
+        raise argparse.ArgumentTypeError(f"{text!r}: {value!r} is not a Python literal") from None
+
+
 def measure(setting: dict, args: argparse.Namespace, device: torch.device) -> dict:
     torch.manual_seed(0)
     model = TerraShiftModelConfig.small() if args.preset == "small" else TerraShiftModelConfig()
+    model = dataclasses.replace(model, **args.model)
     networks = make_terrashift_networks(model).to(device)
     config = TrainConfig(
         num_envs=setting["num_envs"],
@@ -133,14 +153,24 @@ def main() -> None:
     parser.add_argument("--iters", type=int, default=4, help="timed iterations per setting")
     parser.add_argument("--preset", choices=["default", "small"], default="default")
     parser.add_argument(
+        "--model",
+        type=parse_model_field,
+        nargs="+",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="network fields that replace the preset's, e.g. embed_dim=64 cnn_channels=[8,16,16]",
+    )
+    parser.add_argument(
         "--out", type=Path, default=Path(__file__).parent / "results" / "train_throughput.json"
     )
     args = parser.parse_args()
+    args.model = dict(args.model)
     if args.warmup < 0 or args.iters < 1:
         parser.error("--warmup must be >= 0 and --iters >= 1")
     device = torch.device(args.device)
     name = device_name(device)
-    print(f"MA-POCA training throughput, pretrain scene, {args.preset} network, {name}")
+    fields = "".join(f" {field}={value}" for field, value in args.model.items())
+    print(f"MA-POCA training throughput, pretrain scene, {args.preset} network{fields}, {name}")
     print(
         "  envs | ep x mb | prec |     exec | env-steps/s |  collect/s | coll s | est s  |"
         " epochs s | warmup s"
@@ -150,6 +180,7 @@ def main() -> None:
         "device": name,
         "torch": torch.__version__,
         "preset": args.preset,
+        "model": args.model,
         "rows": [],
     }
     for setting in args.settings:
