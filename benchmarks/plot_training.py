@@ -4,8 +4,11 @@
         benchmarks/results/training/h100_run2_6min --out docs/figures/pretrain_h100.png
 
 Each argument is a ``scalars`` folder written by torchrl's CSVLogger (one ``<metric>.csv`` of
-``step,value`` rows per metric). Draws reward per decision, success rate and throughput against
-env-steps, with an optional reference line in the reward panel.
+``step,value`` rows per metric). Draws one panel per metric against env-steps (by default reward
+per decision, success rate and throughput), with an optional reference line in the reward panel.
+
+    python benchmarks/plot_training.py <runs> --out curves.png \
+        --metrics reward_per_decision out_of_bounds_per_episode entropy kl_approx
 """
 
 from __future__ import annotations
@@ -17,11 +20,17 @@ from common import read_series
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-PANELS = (
-    ("reward_per_decision", "mean team reward per decision"),
-    ("success_rate", "success rate (goals / resolved)"),
-    ("env_steps_per_s", "env-steps/s (collection + update)"),
-)
+TITLES = {
+    "reward_per_decision": "mean team reward per decision",
+    "success_rate": "success rate (goals / resolved)",
+    "env_steps_per_s": "env-steps/s (collection + update)",
+    "goals_per_episode": "goals per episode",
+    "out_of_bounds_per_episode": "spheres lost per episode",
+    "entropy": "policy entropy (per agent)",
+    "kl_approx": "approximate KL per update",
+    "clip_fraction": "clip fraction",
+}
+DEFAULT_METRICS = ("reward_per_decision", "success_rate", "env_steps_per_s")
 
 
 def main() -> None:
@@ -35,13 +44,21 @@ def main() -> None:
         help="a reward per decision to draw as a dashed line",
     )
     parser.add_argument("--reference-label", default="reference")
+    parser.add_argument(
+        "--metrics",
+        nargs="+",
+        default=list(DEFAULT_METRICS),
+        help="logged metrics to draw, one panel each (the names of the runs' CSV files)",
+    )
     args = parser.parse_args()
-    figure = Figure(figsize=(13, 3.6), layout="constrained")
+    figure = Figure(figsize=(4.4 * len(args.metrics), 3.6), layout="constrained")
     FigureCanvasAgg(figure)
-    axes = figure.subplots(1, len(PANELS))
-    for ax, (metric, title) in zip(axes, PANELS, strict=True):
+    axes = figure.subplots(1, len(args.metrics), squeeze=False)[0]
+    for ax, metric in zip(axes, args.metrics, strict=True):
         for run in args.runs:
             steps, values = read_series(run, metric)
+            if not steps:
+                parser.error(f"{run} has no {metric}.csv")
             ax.plot(
                 [s / 1e6 for s in steps],
                 values,
@@ -50,7 +67,7 @@ def main() -> None:
             )
         if metric == "reward_per_decision" and args.reference is not None:
             ax.axhline(args.reference, linestyle="--", color="grey", label=args.reference_label)
-        ax.set_title(title)
+        ax.set_title(TITLES.get(metric, metric))
         ax.set_xlabel("env-steps (millions)")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)

@@ -1,0 +1,191 @@
+"""What a trained policy does: where its spheres go, how its wavelets move, and how much of the
+PPO ratio's spread in an update comes from dropout alone.
+
+    python benchmarks/diagnose_policy.py <run dir>/checkpoints/best.pt <run dir>/checkpoints/last.pt
+
+Per checkpoint (``last.pt`` or ``best.pt`` of a recipe run), on the scene it was trained on:
+
+- **Resolutions.** The policy (sampled actions) drives ``--envs`` environments in training mode
+  (respawn on) for ``--decisions`` decisions. A resolved sphere keeps the position at which it
+  resolved, so each is classed by it: at its goal, past the platform's side (``|x|`` or ``|y|``
+  above ``out_of_bounds_xy``), thrown above ``out_of_bounds_z``, or below the platform. For the
+  spheres lost past the side: their distance to their goal one decision before.
+- **Wavelets and policy.** Over the same decisions: the share of wavelet-decisions at the speed
+  limit (either axis) and at the amplitude limit, the mean width, and per action dimension the
+  median Beta concentration alpha + beta (large: a nearly deterministic dimension).
+- **PPO ratio at zero updates.** One batch collected as the trainer collects it (dropout off),
+  then the loss on it exactly as an update computes it, before any gradient step: with the
+  update's dropout on, the approximate KL and the clip fraction at clip ranges 0.2 and 0.1. With
+  dropout off both are zero, so what this shows is the spread that dropout alone adds to every
+  update's ratios (and to the logged ``kl_approx`` and ``clip_fraction``).
+
+Prints a table and writes JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+from datetime import date
+from pathlib import Path
+
+import torch
+from common import device_name, write_results
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import set_recurrent_mode
+
+from terrashift_rl.modules import TerraShiftModelConfig, keys, make_terrashift_networks
+from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.training import MAPOCATrainer, TrainConfig, load_checkpoint, make_training_env
+
+KINDS = ("goal", "past the side", "thrown above", "below the platform")
+
+
+def resolution_kind(position: torch.Tensor, scene: TerraShiftConfig) -> str:
+    """Where a sphere that resolved at ``position`` [3] did so."""
+    if position[2] > scene.out_of_bounds_z:
+        return "thrown above"
+    if position[2] < 0.0:
+        return "below the platform"
+    if position[:2].abs().max() > scene.out_of_bounds_xy:
+        return "past the side"
+    return "goal"
+
+
+@torch.no_grad()
+def rollout(networks, scene: TerraShiftConfig, args: argparse.Namespace, device) -> dict:
+    """Resolutions, wavelet and concentration statistics of the sampled policy."""
+    env = make_training_env(scene, networks, num_envs=args.envs, device=device, seed=args.seed)
+    sim = env.base_env.sim
+    networks.eval()
+    counts = dict.fromkeys(KINDS, 0)
+    side_distance = []
+    at_speed_limit, at_amplitude_limit, width, concentration = [], [], [], []
+    td = env.reset()
+    with set_exploration_type(ExplorationType.RANDOM):
+        for _ in range(args.decisions):
+            was_active = sim.view("sphere_active").clone()
+            distance = sim.view("goal_distance").clone()
+            td = networks.actor(td)
+            concentration.append(td[keys.BETA_CONCENTRATION0] + td[keys.BETA_CONCENTRATION1])
+            _, td = env.step_and_maybe_reset(td)
+            position = sim.view("sphere_position")
+            for e, j in ((was_active == 1) & (sim.view("sphere_active") == 0)).nonzero().tolist():
+                kind = resolution_kind(position[e, j], scene)
+                counts[kind] += 1
+                if kind == "past the side":
+                    side_distance.append(distance[e, j].item())
+            speed = sim.view("agent_velocity").abs().amax(-1)
+            at_speed_limit.append((speed >= 0.99 * scene.max_velocity).float().mean())
+            amplitude = sim.view("agent_amplitude").abs()
+            at_amplitude_limit.append((amplitude >= 0.99 * scene.max_amplitude).float().mean())
+            width.append(sim.view("agent_sigma").mean())
+    resolved = sum(counts.values())
+    concentration = torch.stack(concentration).flatten(0, -2)  # [decisions * envs * agents, A]
+    return {
+        "resolutions": counts,
+        "success_rate": counts["goal"] / resolved if resolved else 0.0,
+        "median_goal_distance_before_past_the_side": (
+            statistics.median(side_distance) if side_distance else None
+        ),
+        "share_at_speed_limit": torch.stack(at_speed_limit).mean().item(),
+        "share_at_amplitude_limit": torch.stack(at_amplitude_limit).mean().item(),
+        "mean_width_cells": torch.stack(width).mean().item(),
+        "median_concentration_per_dim": concentration.median(0).values.tolist(),
+    }
+
+
+def ratio_at_zero_updates(networks, scene: TerraShiftConfig, args, device) -> dict:
+    """Approximate KL and clip fractions of a first update's ratios, dropout on."""
+    env = make_training_env(scene, networks, num_envs=args.envs, device=device, seed=args.seed)
+    trainer = MAPOCATrainer(
+        env, networks, TrainConfig(num_envs=args.envs, minibatches=1, cuda_graphs=False)
+    )
+    trainer.collect()  # the second batch starts in the middle of episodes
+    data = trainer.collect()
+    networks.eval()
+    with torch.no_grad():
+        trainer.loss.value_estimator(data)
+    networks.train()  # dropout acts in train mode in passes autograd records, as in an update
+    result = {}
+    for clip in (0.2, 0.1):
+        trainer.loss.clip_epsilon.fill_(clip)
+        with set_recurrent_mode(True):
+            out = trainer.loss(data)
+        result[f"clip_fraction_{clip}"] = out["clip_fraction"].item()
+        result["kl_approx"] = out["kl_approx"].item()
+    networks.eval()
+    return result
+
+
+def diagnose(path: Path, args: argparse.Namespace, device: torch.device) -> dict:
+    checkpoint = load_checkpoint(path, map_location=device)
+    scene = TerraShiftConfig(**checkpoint["env_config"])
+    model = TerraShiftModelConfig(**checkpoint["model_config"])
+    networks = make_terrashift_networks(model).to(device)
+    networks.load_state_dict(checkpoint["networks"])
+    torch.manual_seed(args.seed)
+    return {
+        "checkpoint": str(path),
+        "iteration": checkpoint["iteration"],
+        "env_steps": checkpoint["env_steps"],
+        "dropout": model.dropout,
+        **rollout(networks, scene, args, device),
+        "ratio_at_zero_updates": ratio_at_zero_updates(networks, scene, args, device),
+    }
+
+
+def format_row(row: dict) -> str:
+    counts = row["resolutions"]
+    ratio = row["ratio_at_zero_updates"]
+    distance = row["median_goal_distance_before_past_the_side"]
+    concentration = ", ".join(f"{c:.1f}" for c in row["median_concentration_per_dim"])
+    return (
+        f"| {row['checkpoint']} | {row['env_steps'] / 1e6:.1f} M | "
+        f"{counts['goal']}, {counts['past the side']}, {counts['thrown above']}, "
+        f"{counts['below the platform']} | {row['success_rate']:.2f} | "
+        f"{'' if distance is None else f'{distance:.2f}'} | "
+        f"{row['share_at_speed_limit']:.2f}, {row['share_at_amplitude_limit']:.2f}, "
+        f"{row['mean_width_cells']:.2f} | {concentration} | "
+        f"{ratio['kl_approx']:.4f}, {ratio['clip_fraction_0.2']:.3f}, "
+        f"{ratio['clip_fraction_0.1']:.3f} |"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("checkpoints", nargs="+", type=Path, help="last.pt or best.pt files")
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--envs", type=int, default=64, help="environments per checkpoint")
+    parser.add_argument("--decisions", type=int, default=384, help="decisions of the rollout")
+    parser.add_argument("--seed", type=int, default=3)
+    parser.add_argument(
+        "--out", type=Path, default=Path(__file__).parent / "results" / "diagnose_policy.json"
+    )
+    args = parser.parse_args()
+    if args.envs < 1 or args.decisions < 1:
+        parser.error("--envs and --decisions must be at least 1")
+    for path in args.checkpoints:
+        if not path.is_file():
+            parser.error(f"no checkpoint at {path}")
+    device = torch.device(args.device)
+    payload = {"date": date.today().isoformat(), "device": device_name(device), "rows": []}
+    print(
+        f"Policy diagnostics: {args.envs} environments x {args.decisions} decisions, "
+        f"{payload['device']}"
+    )
+    print(
+        "| checkpoint | env-steps | goal, past the side, thrown above, below | success "
+        "| goal distance before past the side [m] | at speed limit, at amplitude limit, width "
+        "| median alpha + beta per action dim | dropout alone: KL, clip fraction 0.2, 0.1 |"
+    )
+    print("|---|---:|---|---:|---:|---|---|---|")
+    for path in args.checkpoints:
+        payload["rows"].append(diagnose(path, args, device))
+        print(format_row(payload["rows"][-1]), flush=True)
+        write_results(args.out, payload)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
