@@ -32,7 +32,10 @@ class TerraShiftModelConfig:
     num_heads: int = 8
     """Attention heads in the trunk, the Swin stages and the critic heads."""
     dropout: float = 0.05
-    """Dropout probability; applied only in passes that will be backpropagated (see ``layers``)."""
+    """Dropout probability (Table 1); applied only in passes that will be backpropagated (see
+    ``layers``). Collection has none, so in an update the ratio of new to stored
+    log-probabilities also carries dropout's noise: late in a run most of the logged
+    approximate KL and clip fraction (``benchmarks/diagnose_policy.py``). 0 removes it."""
 
     agent_observation_dim: int = 9
     """Features per agent: wavelet [x, y, theta, A, sigma_x, sigma_y, v_x, v_y, omega]."""
