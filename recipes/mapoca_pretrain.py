@@ -118,10 +118,25 @@ def check_resumable(resume: dict, configs: dict, cfg: DictConfig) -> None:
         )
 
 
+def is_integer(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
 def checkpoint_state(
     trainer: MAPOCATrainer, configs: dict, run_id: str | None, best: dict[str, Any]
 ) -> dict:
     return {**trainer.state_dict(), **configs, "logger_run_id": run_id, "best": best}
+
+
+def weights_state(trainer: MAPOCATrainer, configs: dict, **extra: Any) -> dict:
+    """The networks, configs and counters: what evaluate.py and finetuning read."""
+    return {
+        "networks": trainer.networks.state_dict(),
+        **configs,
+        "iteration": trainer.iteration,
+        "env_steps": trainer.env_steps,
+        **extra,
+    }
 
 
 def update_best(
@@ -138,14 +153,7 @@ def update_best(
     mean = sum(best["recent"]) / len(best["recent"])
     if len(best["recent"]) == window and mean > best["reward"]:
         best["reward"] = mean
-        state = {
-            "networks": trainer.networks.state_dict(),
-            **configs,
-            "iteration": trainer.iteration,
-            "env_steps": trainer.env_steps,
-            "mean_reward_per_decision": mean,
-        }
-        save_checkpoint(state, path)
+        save_checkpoint(weights_state(trainer, configs, mean_reward_per_decision=mean), path)
 
 
 def train(cfg: DictConfig) -> Path:
@@ -160,8 +168,14 @@ def train(cfg: DictConfig) -> Path:
     )
     train_config.validate()
     window = cfg.run.best_window
-    if isinstance(window, bool) or not isinstance(window, int) or window < 0:
+    if not is_integer(window) or window < 0:
         raise ValueError(f"run.best_window must be an integer >= 0 (0: no best.pt), got {window!r}")
+    snapshot_every = cfg.run.snapshot_every
+    if snapshot_every is not None and not (is_integer(snapshot_every) and snapshot_every >= 1):
+        raise ValueError(
+            f"run.snapshot_every must be a positive integer or null (no snapshots), got "
+            f"{snapshot_every!r}"
+        )
     device = resolve_device(cfg.run.device)
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
     checkpoints = run_dir / "checkpoints"
@@ -229,6 +243,9 @@ def train(cfg: DictConfig) -> Path:
                 update_best(best, reward, window, trainer, configs, checkpoints / "best.pt")
             if trainer.iteration % cfg.run.checkpoint_every == 0:
                 save_checkpoint(checkpoint_state(trainer, configs, run_id, best), last)
+            if snapshot_every and trainer.iteration % snapshot_every == 0:
+                snapshot = checkpoints / f"iteration_{trainer.iteration:06d}.pt"
+                save_checkpoint(weights_state(trainer, configs), snapshot)
     except KeyboardInterrupt:
         progress.write("interrupted: saving a checkpoint to resume from")
     finally:

@@ -134,11 +134,12 @@ def test_smoke_train_resume_and_finetune(tmp_path):
         assert video.n_frames >= 2  # the reset frame and one per decision (GIFs merge repeats)
 
 
-def test_best_checkpoint_holds_the_best_windowed_reward(tmp_path):
+def test_best_checkpoint_and_snapshots_hold_the_weights_they_name(tmp_path):
     result = run(
         "mapoca_pretrain.py",
         "run.total_env_steps=128",
         "run.best_window=2",
+        "run.snapshot_every=2",
         "logger=csv",
         "hydra.run.dir=a",
         cwd=tmp_path,
@@ -157,6 +158,17 @@ def test_best_checkpoint_holds_the_best_windowed_reward(tmp_path):
     last = torch.load(tmp_path / "a/checkpoints/last.pt", weights_only=False)
     assert last["best"]["reward"] == best["mean_reward_per_decision"]
     assert last["best"]["recent"] == pytest.approx(rewards[-2:], rel=1e-6)
+    # a snapshot every 2 iterations: the weights and counters of that iteration
+    snapshots = sorted(path.name for path in (tmp_path / "a/checkpoints").glob("iteration_*.pt"))
+    assert snapshots == ["iteration_000002.pt", "iteration_000004.pt"]
+    second = torch.load(tmp_path / "a/checkpoints/iteration_000002.pt", weights_only=False)
+    assert (second["iteration"], second["env_steps"]) == (2, steps[1])
+    fourth = torch.load(tmp_path / "a/checkpoints/iteration_000004.pt", weights_only=False)
+    for name, value in last["networks"].items():
+        torch.testing.assert_close(fourth["networks"][name], value, atol=0, rtol=0)
+    assert any(
+        not torch.equal(second["networks"][name], value) for name, value in last["networks"].items()
+    )
     # best.pt is what evaluate.py and finetuning read
     evaluation = run(
         "evaluate.py",
@@ -179,6 +191,7 @@ def test_best_checkpoint_holds_the_best_windowed_reward(tmp_path):
     [
         (["train.minibatches=99"], "minibatches"),
         (["run.best_window=-1"], "run.best_window"),
+        (["run.snapshot_every=0"], "run.snapshot_every"),
         (["+env.grid_sise=10"], "unknown key"),
         (["run.resume=missing.pt"], "no checkpoint at"),
         (["logger.kind=paper"], "logger.kind"),
