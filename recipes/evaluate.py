@@ -1,7 +1,8 @@
-"""Scores a trained MA-POCA policy and the baselines in evaluation mode, and records a video.
+"""Scores a trained MA-POCA policy and the baselines (evaluation mode by default), records a video.
 
     python recipes/evaluate.py checkpoint=<run dir>/checkpoints/last.pt
     python recipes/evaluate.py checkpoint=last.pt episodes=512 video.steps=0
+    python recipes/evaluate.py respawn=true     # training mode: the paper's reward per decision
 
 Writes ``evaluation.json`` (success rate, goals and out-of-bounds per episode, mean reward per
 decision; for the policy's mean action, for its samples, and for each baseline) and a video of
@@ -38,6 +39,10 @@ def trained_policy(networks, exploration: ExplorationType):
 
 @hydra.main(version_base=None, config_path="configs", config_name="evaluate")
 def main(cfg: DictConfig) -> None:
+    if not isinstance(cfg.respawn, bool):
+        raise ValueError(
+            f"respawn must be false (evaluation mode) or true (training mode), got {cfg.respawn!r}"
+        )
     device = resolve_device(cfg.device)
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
     checkpoint = load_checkpoint(cfg.checkpoint) if cfg.checkpoint else None
@@ -45,7 +50,7 @@ def main(cfg: DictConfig) -> None:
         scene = TerraShiftConfig(**checkpoint["env_config"])
     else:
         scene = structured(TerraShiftConfig, cfg.env, "env")
-    scene = scene.replace(respawn=False)
+    scene = scene.replace(respawn=cfg.respawn)
     results: dict = {"scene": dataclasses.asdict(scene), "episodes": cfg.episodes}
 
     networks = None
@@ -67,7 +72,7 @@ def main(cfg: DictConfig) -> None:
                 print(f"policy ({name}): {results[name]}")
     if cfg.baselines:
         results["baselines"] = evaluate_baselines(
-            scene, num_envs=cfg.episodes, device=device, seed=cfg.seed
+            scene, num_envs=cfg.episodes, device=device, seed=cfg.seed, respawn=cfg.respawn
         )
         for name, metrics in results["baselines"].items():
             print(f"baseline {name}: {metrics}")

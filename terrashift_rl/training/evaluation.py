@@ -41,35 +41,34 @@ def evaluate(
     """Runs exactly one episode in every environment of ``env`` and scores ``policy``.
 
     The environments are reset once, then stepped together with ``env.step_and_maybe_reset``
-    until each has finished its first episode (``done``: every sphere resolved, or the step
-    limit). Environments that finish early keep stepping with the rest (they are reset
-    automatically), but their later steps are ignored. Runs under ``torch.no_grad``.
+    until each has finished its first episode (``done``). In evaluation mode
+    (``respawn=False``) an episode ends when every sphere is resolved or at the step limit;
+    environments that finish early keep stepping with the rest (they are reset automatically),
+    but their later steps are ignored. In training mode (respawn on) every episode runs to the
+    step limit, so its reward per decision is the training metric (the paper's). Runs under
+    ``torch.no_grad``.
 
     Args:
-        env: a batched :class:`~terrashift_rl.envs.TerraShiftEnv` in evaluation mode
-            (``respawn=False``), or a TorchRL ``TransformedEnv`` wrapping one.
+        env: a batched :class:`~terrashift_rl.envs.TerraShiftEnv`, or a TorchRL
+            ``TransformedEnv`` wrapping one.
         policy: callable writing ``("agents", "action")`` into the tensordict it receives.
         episodes: number of episodes; must equal ``env``'s number of environments if given.
         progress: show a tqdm bar over the decisions.
 
     Returns:
         ``episodes``; ``success_rate``, goals over resolved objects (goals plus out of bounds;
-        0 if nothing was resolved); ``goal_fraction``, goals over ``episodes * num_objects``;
+        0 if nothing was resolved); ``goal_fraction``, goals over ``episodes * num_objects`` (above
+        1 in training mode when respawned spheres reach their goals);
         ``goals_per_episode``; ``out_of_bounds_per_episode``; ``mean_reward_per_decision``, the
         team reward averaged over each environment's decisions of its episode, then over the
         environments; ``mean_episode_length`` in decisions; ``terminated_fraction``, the share of
         episodes that ended with every sphere resolved rather than at the step limit.
 
     Raises:
-        ValueError: if ``env`` is not in evaluation mode, is not batched, or ``episodes``
-            differs from its number of environments.
+        ValueError: if ``env`` is not a TerraShift environment, is not batched, or
+            ``episodes`` differs from its number of environments.
     """
     config = _scene_config(env)
-    if config.respawn:
-        raise ValueError(
-            "evaluate needs an environment in evaluation mode: build it with respawn=False "
-            "(e.g. TerraShiftEnv(config, num_envs=..., respawn=False)) so episodes terminate"
-        )
     if len(env.batch_size) != 1:
         raise ValueError(f"evaluate needs a batch of environments, got batch {env.batch_size}")
     num_envs = env.batch_size[0]
@@ -135,19 +134,22 @@ def evaluate_baselines(
     device: str | torch.device = "cpu",
     seed: int = 0,
     progress: bool = False,
+    respawn: bool = False,
 ) -> dict[str, dict[str, float]]:
-    """Scores the random, zero and scripted heuristic policies in evaluation mode.
+    """Scores the random, zero and scripted heuristic policies with :func:`evaluate`.
 
-    Each policy gets a fresh environment built from ``config`` with ``respawn=False`` and the
-    same ``seed``, so all three face the same initial scenes (goals, first sphere, wavelets);
+    Each policy gets a fresh environment built from ``config`` with ``respawn`` and the same
+    ``seed``, so all three face the same initial scenes (goals, first sphere, wavelets);
     the random policy's generator is seeded with ``seed`` too.
 
     Args:
-        config: the scene; ``respawn`` is overridden to False.
+        config: the scene; its ``respawn`` is replaced by ``respawn``.
         num_envs: environments, hence episodes, per policy.
         device: where to simulate.
         seed: seed of the environments and of the random policy.
         progress: show a tqdm bar per policy.
+        respawn: False for evaluation mode, True for training mode (episodes run to the step
+            limit).
 
     Returns:
         ``{"random": metrics, "zero": metrics, "heuristic": metrics}``, each as returned by
@@ -159,7 +161,7 @@ def evaluate_baselines(
         >>> sorted(scores), scores["zero"]["episodes"]
         (['heuristic', 'random', 'zero'], 2.0)
     """
-    config = config.replace(respawn=False)
+    config = config.replace(respawn=respawn)
     policies: dict[str, Policy] = {
         "random": RandomPolicy(seed=seed),
         "zero": ZeroPolicy(),

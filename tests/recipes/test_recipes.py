@@ -169,7 +169,7 @@ def test_best_checkpoint_and_snapshots_hold_the_weights_they_name(tmp_path):
     assert any(
         not torch.equal(second["networks"][name], value) for name, value in last["networks"].items()
     )
-    # best.pt is what evaluate.py and finetuning read
+    # best.pt is what evaluate.py and finetuning read; here scored in training mode
     evaluation = run(
         "evaluate.py",
         "checkpoint=a/checkpoints/best.pt",
@@ -177,6 +177,7 @@ def test_best_checkpoint_and_snapshots_hold_the_weights_they_name(tmp_path):
         "device=cpu",
         "video.steps=0",
         "baselines=false",
+        "respawn=true",
         "hydra.run.dir=e",
         cwd=tmp_path,
         config_name=None,
@@ -184,6 +185,9 @@ def test_best_checkpoint_and_snapshots_hold_the_weights_they_name(tmp_path):
     assert evaluation.returncode == 0, evaluation.stderr
     report = json.loads((tmp_path / "e/evaluation.json").read_text())
     assert report["checkpoint_env_steps"] == best["env_steps"]
+    assert report["scene"]["respawn"]
+    for name in ("deterministic", "stochastic"):  # every episode runs to the step limit
+        assert report[name]["mean_episode_length"] == best["env_config"]["max_episode_steps"]
 
 
 @pytest.mark.parametrize(
@@ -201,6 +205,14 @@ def test_bad_configuration_fails_at_start_up(tmp_path, overrides, message):
     result = run("mapoca_pretrain.py", *overrides, "hydra.run.dir=x", cwd=tmp_path)
     assert result.returncode != 0
     assert message in result.stderr
+
+
+def test_evaluate_rejects_a_respawn_that_is_not_a_boolean(tmp_path):
+    result = run(
+        "evaluate.py", "respawn=sometimes", "hydra.run.dir=x", cwd=tmp_path, config_name=None
+    )
+    assert result.returncode != 0
+    assert "respawn must be false (evaluation mode) or true (training mode)" in result.stderr
 
 
 def test_resume_names_the_settings_that_differ_from_the_checkpoints(tmp_path):

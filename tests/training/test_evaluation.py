@@ -84,14 +84,29 @@ def test_nothing_resolved_gives_a_zero_success_rate_not_nan():
     assert all(math.isfinite(value) for value in metrics.values())
 
 
-def test_rejects_training_mode_and_a_wrong_episode_count():
-    with pytest.raises(ValueError, match="respawn=False"):
-        evaluate(TerraShiftEnv(num_envs=2, seed=0), ZeroPolicy(), progress=False)
-    with pytest.raises(ValueError, match="respawn=False"):
-        wrapped = TransformedEnv(TerraShiftEnv(num_envs=2, seed=0), InitTracker())
-        evaluate(wrapped, ZeroPolicy(), progress=False)
+def test_rejects_a_wrong_episode_count():
     with pytest.raises(ValueError, match="episodes"):
         evaluate(TerraShiftEnv(CFG, num_envs=2, seed=0), ZeroPolicy(), episodes=3)
+
+
+def test_training_mode_runs_every_episode_to_the_step_limit():
+    n, seed, steps = 4, 3, 48
+    config = CFG.replace(respawn=True, max_episode_steps=steps)
+    policy = ScriptedHeuristicPolicy(config)
+    metrics = evaluate(TerraShiftEnv(config, num_envs=n, seed=seed), policy, progress=False)
+    ref = hand_count(TerraShiftEnv(config, num_envs=n, seed=seed), policy, steps)
+    assert (ref["length"] == steps).all() and not ref["terminated"].any()
+    assert metrics["mean_episode_length"] == steps and metrics["terminated_fraction"] == 0
+    assert metrics["goals_per_episode"] == pytest.approx(ref["goals"].sum().item() / n)
+    assert metrics["out_of_bounds_per_episode"] == pytest.approx(ref["lost"].sum().item() / n)
+    assert metrics["mean_reward_per_decision"] == pytest.approx(
+        ref["reward"].mean().item(), rel=1e-5, abs=1e-7
+    )
+    baselines = evaluate_baselines(
+        config.replace(respawn=False), num_envs=n, seed=seed, respawn=True
+    )
+    assert baselines["heuristic"] == metrics
+    assert all(scores["mean_episode_length"] == steps for scores in baselines.values())
 
 
 def test_heuristic_beats_random_and_zero():
