@@ -68,6 +68,7 @@ def main(cfg: DictConfig) -> None:
                 env = make_training_env(
                     scene, networks, num_envs=cfg.episodes, device=device, seed=cfg.seed
                 )
+                torch.manual_seed(cfg.seed)  # the sampled actions draw from torch's generators
                 results[name] = evaluate(env, trained_policy(networks, exploration))
                 print(f"policy ({name}): {results[name]}")
     if cfg.baselines:

@@ -188,6 +188,27 @@ def test_best_checkpoint_and_snapshots_hold_the_weights_they_name(tmp_path):
     assert report["scene"]["respawn"]
     for name in ("deterministic", "stochastic"):  # every episode runs to the step limit
         assert report[name]["mean_episode_length"] == best["env_config"]["max_episode_steps"]
+    # the same weights, from the last checkpoint and from its snapshot: with the same seed the
+    # sampled actions, and so every score, are the same
+    sampled = []
+    for source in ("last", "iteration_000004"):
+        evaluation = run(
+            "evaluate.py",
+            f"checkpoint=a/checkpoints/{source}.pt",
+            "episodes=2",
+            "device=cpu",
+            "video.steps=0",
+            "baselines=false",
+            "respawn=true",
+            f"hydra.run.dir={source}",
+            cwd=tmp_path,
+            config_name=None,
+        )
+        assert evaluation.returncode == 0, evaluation.stderr
+        sampled.append(
+            json.loads((tmp_path / source / "evaluation.json").read_text())["stochastic"]
+        )
+    assert sampled[0] == sampled[1]
 
 
 @pytest.mark.parametrize(
