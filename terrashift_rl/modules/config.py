@@ -31,11 +31,13 @@ class TerraShiftModelConfig:
     """Width d of every token and agent embedding."""
     num_heads: int = 8
     """Attention heads in the trunk, the Swin stages and the critic heads."""
-    dropout: float = 0.05
-    """Dropout probability (Table 1); applied only in passes that will be backpropagated (see
-    ``layers``). Collection has none, so in an update the ratio of new to stored
-    log-probabilities also carries dropout's noise: late in a run most of the logged
-    approximate KL and clip fraction (``benchmarks/diagnose_policy.py``). 0 removes it."""
+    dropout: float = 0.0
+    """Dropout probability, applied only in passes that will be backpropagated (see
+    ``layers``). Table 1 uses 0.05, but collection has none, so in an update the ratio of new
+    to stored log-probabilities then also carries dropout's noise: late in a run most of the
+    logged approximate KL and clip fraction (``benchmarks/diagnose_policy.py``). Runs with
+    0.05 lost more and more spheres after a few minutes; runs with 0 did not (docs/results.md,
+    runs 14 and 15)."""
 
     agent_observation_dim: int = 9
     """Features per agent: wavelet [x, y, theta, A, sigma_x, sigma_y, v_x, v_y, omega]."""

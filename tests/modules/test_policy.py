@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -9,7 +10,8 @@ import torch
 from tensordict.nn import InteractionType, set_interaction_type
 from torch.distributions import AffineTransform, Beta, Independent, TransformedDistribution
 
-from terrashift_rl.modules import ScaledBeta, keys
+from terrashift_rl.modules import ScaledBeta, keys, make_terrashift_networks
+from terrashift_rl.sim.types import ACTION_DIM
 
 # Monte Carlo tolerance: 5 standard errors of a 200k-sample mean of log-densities.
 MC_SAMPLES = 200_000
@@ -105,8 +107,10 @@ def test_deterministic_interaction_returns_the_mean(networks, make_batch):
     torch.testing.assert_close(data[keys.ACTION], mean)
 
 
-def test_dropout_is_off_during_collection_and_on_in_updates(networks, make_batch):
-    networks.train()
+def test_dropout_is_off_during_collection_and_on_in_updates(small_config, make_batch):
+    torch.manual_seed(0)
+    config = dataclasses.replace(small_config, dropout=0.05)
+    networks = make_terrashift_networks(config, action_dim=ACTION_DIM).train()
     data = make_batch((16,))
     with torch.no_grad(), set_interaction_type(InteractionType.RANDOM):
         collected = networks.actor(data.clone())

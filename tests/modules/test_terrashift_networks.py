@@ -139,7 +139,8 @@ def test_default_config_matches_table_1():
     assert config.swin_windows == [2, 4]
     budget = (config.tokenizer_base_tokens, config.tokenizer_min_tokens)
     assert budget + (config.tokenizer_max_tokens,) == (12, 8, 16)
-    assert (config.gru_layers, config.dropout, config.min_concentration) == (2, 0.05, 1.01)
+    assert (config.gru_layers, config.min_concentration) == (2, 1.01)
+    assert config.dropout == 0.0  # Table 1: 0.05, which corrupts PPO's ratio (docs/results.md)
     assert (config.policy_hidden_dim, config.critic_hidden_dim, config.ffn_dim) == (192, 128, 384)
 
 
