@@ -118,6 +118,35 @@ def check_resumable(resume: dict, configs: dict, cfg: DictConfig) -> None:
         )
 
 
+class StopRequest:
+    """SIGINT (Ctrl-C) and SIGTERM (a scheduler's kill) handler: the first signal lets the
+    running iteration finish, so the checkpoint written then is a consistent one; a second
+    interrupts at once, without a checkpoint. Restores the previous handlers on exit."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self, progress: tqdm) -> None:
+        self.progress = progress
+        self.requested = False
+
+    def __call__(self, signum: int, frame: Any) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        self.progress.write(
+            f"{signal.Signals(signum).name}: stopping after this iteration, then saving a "
+            "checkpoint to resume from (signal again to quit at once, without one)"
+        )
+
+    def __enter__(self) -> StopRequest:
+        self.previous = {number: signal.signal(number, self) for number in self.SIGNALS}
+        return self
+
+    def __exit__(self, *exc_info: Any) -> None:
+        for number, handler in self.previous.items():
+            signal.signal(number, handler)
+
+
 def is_integer(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
@@ -216,8 +245,6 @@ def train(cfg: DictConfig) -> Path:
     # --- train -------------------------------------------------------------------------------
     deadline = None if cfg.run.minutes is None else time.monotonic() + 60.0 * cfg.run.minutes
     last = checkpoints / "last.pt"
-    # a SIGTERM (a scheduler's kill) ends the run like Ctrl-C: checkpoint, then exit
-    signal.signal(signal.SIGTERM, signal.default_int_handler)
     progress = tqdm(
         total=cfg.run.total_env_steps,
         initial=trainer.env_steps,
@@ -227,30 +254,35 @@ def train(cfg: DictConfig) -> Path:
         dynamic_ncols=True,
     )
     try:
-        for metrics in iterate_until(
-            trainer, total_env_steps=cfg.run.total_env_steps, deadline=deadline
-        ):
-            progress.update(trainer.env_steps - progress.n)
-            progress.set_postfix(
-                reward=f"{metrics['reward_per_decision']:+.4f}",
-                steps_per_s=f"{metrics['env_steps_per_s']:,.0f}",
-            )
-            if logger is not None:
-                for name, value in metrics.items():
-                    logger.log_scalar(name, value, step=trainer.env_steps)
-            if window:
-                reward = metrics["reward_per_decision"]
-                update_best(best, reward, window, trainer, configs, checkpoints / "best.pt")
-            if trainer.iteration % cfg.run.checkpoint_every == 0:
-                save_checkpoint(checkpoint_state(trainer, configs, run_id, best), last)
-            if snapshot_every and trainer.iteration % snapshot_every == 0:
-                snapshot = checkpoints / f"iteration_{trainer.iteration:06d}.pt"
-                save_checkpoint(weights_state(trainer, configs), snapshot)
+        with StopRequest(progress) as stop:
+            for metrics in iterate_until(
+                trainer, total_env_steps=cfg.run.total_env_steps, deadline=deadline
+            ):
+                progress.update(trainer.env_steps - progress.n)
+                progress.set_postfix(
+                    reward=f"{metrics['reward_per_decision']:+.4f}",
+                    steps_per_s=f"{metrics['env_steps_per_s']:,.0f}",
+                )
+                if logger is not None:
+                    for name, value in metrics.items():
+                        logger.log_scalar(name, value, step=trainer.env_steps)
+                if window:
+                    reward = metrics["reward_per_decision"]
+                    update_best(best, reward, window, trainer, configs, checkpoints / "best.pt")
+                if trainer.iteration % cfg.run.checkpoint_every == 0:
+                    save_checkpoint(checkpoint_state(trainer, configs, run_id, best), last)
+                if snapshot_every and trainer.iteration % snapshot_every == 0:
+                    snapshot = checkpoints / f"iteration_{trainer.iteration:06d}.pt"
+                    save_checkpoint(weights_state(trainer, configs), snapshot)
+                if stop.requested:
+                    break
+            # between iterations: the state is consistent, the checkpoint resumes exactly
+            save_checkpoint(checkpoint_state(trainer, configs, run_id, best), last)
     except KeyboardInterrupt:
-        progress.write("interrupted: saving a checkpoint to resume from")
+        progress.write(f"interrupted mid-iteration; {last} is the last checkpoint written")
+        raise SystemExit(130) from None
     finally:
         progress.close()
-        save_checkpoint(checkpoint_state(trainer, configs, run_id, best), last)
         if (
             logger is not None
             and hasattr(logger, "experiment")

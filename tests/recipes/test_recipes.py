@@ -1,20 +1,23 @@
 """Recipes: every config composes; the smoke config trains, resumes exactly and finetunes."""
 
 import json
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from PIL import Image
+from tqdm import tqdm
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPES = ROOT / "recipes"
 CONFIGS = RECIPES / "configs"
 sys.path.insert(0, str(RECIPES))
-import mapoca_pretrain  # noqa: E402, F401  (registers the env and model groups' schemas)
+import mapoca_pretrain  # noqa: E402  (also registers the env and model groups' schemas)
 
 PRIMARY = sorted(path.stem for path in CONFIGS.glob("*.yaml"))
 
@@ -132,6 +135,52 @@ def test_smoke_train_resume_and_finetune(tmp_path):
     assert set(report["baselines"]) == {"random", "zero", "heuristic"}
     with Image.open(tmp_path / "e/rollout.gif") as video:
         assert video.n_frames >= 2  # the reset frame and one per decision (GIFs merge repeats)
+
+
+def test_a_terminated_run_checkpoints_a_whole_iteration(tmp_path):
+    # SIGTERM lands mid-iteration almost always; the run finishes that iteration first, so its
+    # checkpoint equals that of a run told to stop there
+    command = [sys.executable, str(RECIPES / "mapoca_pretrain.py"), "--config-name", "smoke"]
+    killed = subprocess.Popen(
+        [*command, "run.total_env_steps=1000000", "run.checkpoint_every=1", "hydra.run.dir=k"],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 300
+    while not (tmp_path / "k/checkpoints/last.pt").exists() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    time.sleep(1.0)
+    killed.send_signal(signal.SIGTERM)
+    stdout, stderr = killed.communicate(timeout=300)
+    assert killed.returncode == 0, stderr
+    assert "SIGTERM: stopping after this iteration" in stdout
+    k = torch.load(tmp_path / "k/checkpoints/last.pt", weights_only=False)
+    assert k["iteration"] >= 2
+    straight = run(
+        "mapoca_pretrain.py",
+        f"run.total_env_steps={k['env_steps']}",
+        "hydra.run.dir=s",
+        cwd=tmp_path,
+    )
+    assert straight.returncode == 0, straight.stderr
+    s = torch.load(tmp_path / "s/checkpoints/last.pt", weights_only=False)
+    assert s["iteration"] == k["iteration"]
+    for name, value in s["networks"].items():
+        torch.testing.assert_close(k["networks"][name], value, atol=0, rtol=0)
+    torch.testing.assert_close(k["simulator"], s["simulator"], atol=0, rtol=0)
+
+
+def test_a_second_signal_interrupts_at_once():
+    before = {number: signal.getsignal(number) for number in (signal.SIGINT, signal.SIGTERM)}
+    with mapoca_pretrain.StopRequest(tqdm(disable=True)) as stop:
+        assert signal.getsignal(signal.SIGTERM) is stop
+        stop(signal.SIGTERM, None)
+        assert stop.requested
+        with pytest.raises(KeyboardInterrupt):
+            stop(signal.SIGINT, None)
+    assert {number: signal.getsignal(number) for number in before} == before
 
 
 def test_best_checkpoint_and_snapshots_hold_the_weights_they_name(tmp_path):
