@@ -18,6 +18,11 @@ Per checkpoint (``last.pt`` or ``best.pt`` of a recipe run), on the scene it was
   update's dropout on, the approximate KL and the clip fraction at clip ranges 0.2 and 0.1. With
   dropout off both are zero, so what this shows is the spread that dropout alone adds to every
   update's ratios (and to the logged ``kl_approx`` and ``clip_fraction``).
+- **Counterfactual baselines.** On the same batch, relative to the baselines' spread over it:
+  how far the baselines b_i of one step's agents lie apart (the only per-agent part of the
+  advantages G - b_i), and how much they move when every action is sampled again from the
+  policy (their dependence on the other agents' actions). With both near zero, the agents of a
+  step share one advantage.
 
 Prints a table and writes JSON.
 """
@@ -95,8 +100,8 @@ def rollout(networks, scene: TerraShiftConfig, args: argparse.Namespace, device)
     }
 
 
-def ratio_at_zero_updates(networks, scene: TerraShiftConfig, args, device) -> dict:
-    """Approximate KL and clip fractions of a first update's ratios, dropout on."""
+def collected_batch(networks, scene: TerraShiftConfig, args, device):
+    """A trainer and one batch it collected (dropout off), with its value-estimation pass."""
     env = make_training_env(scene, networks, num_envs=args.envs, device=device, seed=args.seed)
     trainer = MAPOCATrainer(
         env, networks, TrainConfig(num_envs=args.envs, minibatches=1, cuda_graphs=False)
@@ -104,8 +109,13 @@ def ratio_at_zero_updates(networks, scene: TerraShiftConfig, args, device) -> di
     trainer.collect()  # the second batch starts in the middle of episodes
     data = trainer.collect()
     networks.eval()
-    with torch.no_grad():
-        trainer.loss.value_estimator(data)
+    trainer.loss.value_estimator(data)
+    return trainer, data
+
+
+def ratio_at_zero_updates(trainer: MAPOCATrainer, data) -> dict:
+    """Approximate KL and clip fractions of a first update's ratios, dropout on."""
+    networks = trainer.networks
     networks.train()  # dropout acts in train mode in passes autograd records, as in an update
     result = {}
     for clip in (0.2, 0.1):
@@ -116,6 +126,38 @@ def ratio_at_zero_updates(networks, scene: TerraShiftConfig, args, device) -> di
         result["kl_approx"] = out["kl_approx"].item()
     networks.eval()
     return result
+
+
+@torch.no_grad()
+def baseline_credit(trainer: MAPOCATrainer, data) -> dict:
+    """How much the counterfactual baselines b_i tell the agents of one step apart, and how
+    much they depend on the other agents' actions, both relative to b's spread over the batch.
+
+    ``agent_spread``: the mean over steps of b_i's standard deviation across agents, the only
+    part of the advantages G - b_i that differs between the agents of a step. ``action_effect``:
+    the mean |b_i(s, a'_-i) - b_i(s, a_-i)| when every action is sampled again from the policy.
+    """
+    baseline = data.get(keys.BASELINE).squeeze(-1)  # [N, T, K], as the critic outputs it
+    with set_exploration_type(ExplorationType.RANDOM), set_recurrent_mode(False):
+        resampled = trainer.networks.actor(data.exclude("next").clone()).get(keys.ACTION)
+    other = data.clone()
+    other.set(keys.ACTION, resampled)
+    trainer.loss.value_estimator(other)
+    changed = other.get(keys.BASELINE).squeeze(-1)
+    scale = baseline.std()
+    return {
+        "agent_spread": (baseline.std(-1).mean() / scale).item(),
+        "action_effect": ((changed - baseline).abs().mean() / scale).item(),
+    }
+
+
+def update_diagnostics(networks, scene: TerraShiftConfig, args, device) -> dict:
+    """The diagnostics that need a collected batch: the ratio's spread and the baselines'."""
+    trainer, data = collected_batch(networks, scene, args, device)
+    return {
+        "ratio_at_zero_updates": ratio_at_zero_updates(trainer, data),
+        "baseline": baseline_credit(trainer, data),
+    }
 
 
 def diagnose(path: Path, args: argparse.Namespace, device: torch.device) -> dict:
@@ -131,7 +173,7 @@ def diagnose(path: Path, args: argparse.Namespace, device: torch.device) -> dict
         "env_steps": checkpoint["env_steps"],
         "dropout": model.dropout,
         **rollout(networks, scene, args, device),
-        "ratio_at_zero_updates": ratio_at_zero_updates(networks, scene, args, device),
+        **update_diagnostics(networks, scene, args, device),
     }
 
 
@@ -148,7 +190,8 @@ def format_row(row: dict) -> str:
         f"{row['share_at_speed_limit']:.2f}, {row['share_at_amplitude_limit']:.2f}, "
         f"{row['mean_width_cells']:.2f} | {concentration} | "
         f"{ratio['kl_approx']:.4f}, {ratio['clip_fraction_0.2']:.3f}, "
-        f"{ratio['clip_fraction_0.1']:.3f} |"
+        f"{ratio['clip_fraction_0.1']:.3f} | "
+        f"{row['baseline']['agent_spread']:.4f}, {row['baseline']['action_effect']:.4f} |"
     )
 
 
@@ -177,9 +220,10 @@ def main() -> None:
     print(
         "| checkpoint | env-steps | goal, past the side, thrown above, below | success "
         "| goal distance before past the side [m] | at speed limit, at amplitude limit, width "
-        "| median alpha + beta per action dim | dropout alone: KL, clip fraction 0.2, 0.1 |"
+        "| median alpha + beta per action dim | dropout alone: KL, clip fraction 0.2, 0.1 "
+        "| baselines: spread across agents, effect of the actions |"
     )
-    print("|---|---:|---|---:|---:|---|---|---|")
+    print("|---|---:|---|---:|---:|---|---|---|---|")
     for path in args.checkpoints:
         payload["rows"].append(diagnose(path, args, device))
         print(format_row(payload["rows"][-1]), flush=True)
