@@ -151,15 +151,6 @@ def baseline_credit(trainer: MAPOCATrainer, data) -> dict:
     }
 
 
-def update_diagnostics(networks, scene: TerraShiftConfig, args, device) -> dict:
-    """The diagnostics that need a collected batch: the ratio's spread and the baselines'."""
-    trainer, data = collected_batch(networks, scene, args, device)
-    return {
-        "ratio_at_zero_updates": ratio_at_zero_updates(trainer, data),
-        "baseline": baseline_credit(trainer, data),
-    }
-
-
 def diagnose(path: Path, args: argparse.Namespace, device: torch.device) -> dict:
     checkpoint = load_checkpoint(path, map_location=device)
     scene = TerraShiftConfig(**checkpoint["env_config"])
@@ -167,13 +158,16 @@ def diagnose(path: Path, args: argparse.Namespace, device: torch.device) -> dict
     networks = make_terrashift_networks(model).to(device)
     networks.load_state_dict(checkpoint["networks"])
     torch.manual_seed(args.seed)
+    rollout_statistics = rollout(networks, scene, args, device)
+    trainer, data = collected_batch(networks, scene, args, device)
     return {
         "checkpoint": str(path),
         "iteration": checkpoint["iteration"],
         "env_steps": checkpoint["env_steps"],
         "dropout": model.dropout,
-        **rollout(networks, scene, args, device),
-        **update_diagnostics(networks, scene, args, device),
+        **rollout_statistics,
+        "ratio_at_zero_updates": ratio_at_zero_updates(trainer, data),
+        "baseline": baseline_credit(trainer, data),
     }
 
 
