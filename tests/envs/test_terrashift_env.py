@@ -106,14 +106,15 @@ def test_partial_reset_touches_only_masked_environments():
     assert out["objects_mask"][mask, 0].all()
 
 
-def test_same_seed_reproduces_and_other_seed_differs():
-    actions = random_actions(6, TerraShiftEnv(num_envs=N, seed=0))
-    first = play(TerraShiftEnv(num_envs=N, seed=7), actions)
-    again = play(TerraShiftEnv(num_envs=N, seed=7), actions)
-    other = play(TerraShiftEnv(num_envs=N, seed=8), actions)
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])
+def test_same_seed_reproduces_and_other_seed_differs(device):
+    actions = random_actions(6, TerraShiftEnv(num_envs=N, seed=0)).to(device)
+    first = play(TerraShiftEnv(num_envs=N, seed=7, device=device), actions)
+    again = play(TerraShiftEnv(num_envs=N, seed=7, device=device), actions)
+    other = play(TerraShiftEnv(num_envs=N, seed=8, device=device), actions)
     assert (first == again).all()
     assert not torch.equal(first["heightmap"], other["heightmap"])
-    env = TerraShiftEnv(num_envs=N, seed=123)
+    env = TerraShiftEnv(num_envs=N, seed=123, device=device)
     env.set_seed(7)
     assert (play(env, actions) == first).all()
 
