@@ -9,6 +9,7 @@ import platform
 from pathlib import Path
 
 import torch
+from omegaconf import OmegaConf
 
 
 def device_name(device: torch.device) -> str:
@@ -42,3 +43,17 @@ def read_series(folder: Path, metric: str) -> tuple[list[float], list[float]]:
     with path.open() as file:
         rows = [(float(step), float(value)) for step, value in csv.reader(file)]
     return [step for step, _ in rows], [value for _, value in rows]
+
+
+def run_label(folder: Path) -> str:
+    """A run's name in tables and legends. A recipe's own log folder,
+    ``<run dir>/logs/<run name>/scalars``, is named by its run directory and the command line's
+    overrides that Hydra recorded there (so the runs of a ``-m`` sweep tell apart); any other
+    folder, such as a copy under ``benchmarks/results/training/``, by its own name."""
+    if folder.name != "scalars" or len(folder.resolve().parents) < 3:
+        return folder.name
+    run_dir = folder.resolve().parents[2]
+    overrides = run_dir / ".hydra" / "overrides.yaml"
+    if not overrides.is_file():
+        return run_dir.name
+    return " ".join([run_dir.name, *OmegaConf.load(overrides)])

@@ -6,6 +6,8 @@
 Each argument is a ``scalars`` folder written by torchrl's CSVLogger (one ``<metric>.csv`` of
 ``step,value`` rows per metric). Draws one panel per metric against env-steps (by default reward
 per decision, success rate and throughput), with an optional reference line in the reward panel.
+A recipe's own folder (``<run dir>/logs/<run name>/scalars``) is labelled by its run folder and
+the overrides Hydra recorded there, any other folder by its name.
 
     python benchmarks/plot_training.py <runs> --out curves.png \
         --metrics reward_per_decision out_of_bounds_per_episode entropy kl_approx
@@ -16,7 +18,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from common import read_series
+from common import read_series, run_label
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
@@ -63,7 +65,7 @@ def main() -> None:
                 [s / 1e6 for s in steps],
                 values,
                 marker="." if len(steps) < 10 else None,
-                label=run.name,
+                label=run_label(run),
             )
         if metric == "reward_per_decision" and args.reference is not None:
             ax.axhline(args.reference, linestyle="--", color="grey", label=args.reference_label)

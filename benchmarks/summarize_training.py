@@ -2,7 +2,9 @@
 
     python benchmarks/summarize_training.py benchmarks/results/training/h200_x4_6.5min/*/
 
-Each argument is a ``scalars`` folder written by torchrl's CSVLogger (``logger=csv``). A file
+Each argument is a ``scalars`` folder written by torchrl's CSVLogger (``logger=csv``); a
+recipe's own folder (``<run dir>/logs/<run name>/scalars``) is labelled by its run folder and
+the overrides Hydra recorded there, any other folder by its name. A file
 ``<folder>_evaluation.json`` beside it (``recipes/evaluate.py``'s output) adds the evaluation
 columns. The numbers are those of the tables in ``docs/results.md``: env-steps and iterations
 logged, the median env-steps/s per iteration after the first, the means over the last
@@ -18,7 +20,7 @@ import json
 import statistics
 from pathlib import Path
 
-from common import read_series
+from common import read_series, run_label
 
 
 def row(folder: Path, last: int) -> list[str]:
@@ -31,7 +33,7 @@ def row(folder: Path, last: int) -> list[str]:
     goals = read_series(folder, "goals_per_episode")[1][-last:]
     lost = read_series(folder, "out_of_bounds_per_episode")[1][-last:]
     cells = [
-        folder.name,
+        run_label(folder),
         f"{steps[-1] / 1e6:.2f} M",
         f"{len(steps)}",
         f"{statistics.median(speed):,.0f}" if speed else "",
