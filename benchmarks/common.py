@@ -50,7 +50,7 @@ def run_label(folder: Path) -> str:
     ``<run dir>/logs/<run name>/scalars``, is named by its run directory and the command line's
     overrides that Hydra recorded there (so the runs of a ``-m`` sweep tell apart); any other
     folder, such as a copy under ``benchmarks/results/training/``, by its own name."""
-    if folder.name != "scalars" or len(folder.resolve().parents) < 3:
+    if folder.name != "scalars":
         return folder.name
     run_dir = folder.resolve().parents[2]
     overrides = run_dir / ".hydra" / "overrides.yaml"
