@@ -96,7 +96,7 @@ def make_logger(cfg: DictConfig, run_dir: Path, run_id: str | None) -> Logger | 
 
 
 # How the networks execute, not what they learn: a run may resume with other values.
-EXECUTION_SETTINGS = ("bf16", "tf32", "compile", "cuda_graphs")
+EXECUTION_SETTINGS = ("bf16", "tf32", "compile", "cuda_graphs", "deterministic")
 
 
 def check_resumable(resume: dict, configs: dict, cfg: DictConfig) -> None:

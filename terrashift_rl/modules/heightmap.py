@@ -161,6 +161,22 @@ class AdaptiveSpatialTokenizer(nn.Module):
         return kept * torch.sigmoid(kept_scores).unsqueeze(-1)
 
 
+def average_pool(features: Tensor, rows: int, cols: int) -> Tensor:
+    """Adaptive average pooling of [B, C, H, W] to rows x cols. Where the sizes divide it is a
+    plain average pool, the same windows, whose CUDA backward (unlike the adaptive one's) has a
+    deterministic implementation (``train.deterministic``).
+
+    Examples:
+        >>> x = torch.randn(2, 3, 8, 8)
+        >>> torch.allclose(average_pool(x, 4, 4), nn.functional.adaptive_avg_pool2d(x, 4))
+        True
+    """
+    height, width = features.shape[-2:]
+    if height % rows == 0 and width % cols == 0:
+        return nn.functional.avg_pool2d(features, (height // rows, width // cols))
+    return nn.functional.adaptive_avg_pool2d(features, (rows, cols))
+
+
 class HeightmapEncoder(nn.Module):
     """Turns heightmaps into a bounded set of spatial tokens (Algorithm 2, lines 2-18).
 
@@ -243,7 +259,7 @@ class HeightmapEncoder(nn.Module):
             torch.cat([heightmap, coords.to(heightmap.dtype).expand(batch, -1, -1, -1)], dim=1)
         )
         rows, cols = self.token_grid_shape(map_rows, map_cols)
-        pooled = nn.functional.adaptive_avg_pool2d(features, (rows, cols))
+        pooled = average_pool(features, rows, cols)
         grid = self.token_norm(self.projection(pooled).permute(0, 2, 3, 1))
         grid = grid + sincos_grid_code(rows, cols, grid.shape[-1], device=grid.device).to(
             grid.dtype

@@ -18,6 +18,7 @@ Two passes, as with torchrl's PPO losses:
 from __future__ import annotations
 
 import contextlib
+import math
 from dataclasses import dataclass, fields
 from typing import Literal
 
@@ -116,8 +117,11 @@ class MAPOCAValueEstimator:
         # Step mode: every element runs from the recurrent state stored with it at collection
         # (and "next" from the state stored after the step), which reproduces the collection's
         # hidden states exactly, also across episode boundaries.
+        # the networks run on pieces of at most max_batch leading rows' worth of elements
+        rows = self.max_batch
+        row_size = math.prod(root.batch_size[1:])
         with set_exploration_type(ExplorationType.DETERMINISTIC), set_recurrent_mode(False):
-            state_value, baseline = self._critics(root, with_baseline=True)
+            state_value, baseline = self._critics(root, with_baseline=True, rows=rows)
         agent_mask = loss._agent_mask(tensordict, baseline)
         batch_dims = tensordict.batch_dims
         done = _team_flag(tensordict.get(("next", *_as_tuple(keys.done))), agent_mask, batch_dims)
@@ -127,9 +131,13 @@ class MAPOCAValueEstimator:
                 fresh = done.squeeze(-1).clone()
                 fresh.select(time_dim, -1).fill_(True)
                 next_state_value = state_value.roll(-1, dims=time_dim)
-                next_state_value[fresh] = self._critics(next_step[fresh], with_baseline=False)[0]
+                # a flat batch: its rows are single elements
+                pieces = None if rows is None else rows * row_size
+                next_state_value[fresh] = self._critics(
+                    next_step[fresh], with_baseline=False, rows=pieces
+                )[0]
             else:
-                next_state_value, _ = self._critics(next_step, with_baseline=False)
+                next_state_value, _ = self._critics(next_step, with_baseline=False, rows=rows)
         stored_value, stored_baseline = state_value, baseline
         normalizer = loss.value_normalizer
         if normalizer is not None:
@@ -185,15 +193,15 @@ class MAPOCAValueEstimator:
         return tensordict
 
     def _critics(
-        self, tensordict: TensorDictBase, *, with_baseline: bool
+        self, tensordict: TensorDictBase, *, with_baseline: bool, rows: int | None
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """The loss's critics on ``tensordict``, ``max_batch`` leading rows at a time (in step
-        mode every element is independent, so the pieces give the same values)."""
-        if self.max_batch is None or tensordict.shape[0] <= self.max_batch:
+        """The loss's critics on ``tensordict``, ``rows`` leading rows at a time (in step mode
+        every element is independent, so the pieces give the same values)."""
+        if rows is None or tensordict.shape[0] <= rows:
             return self.loss._run_critics(tensordict, with_baseline=with_baseline)
         pieces = [
             self.loss._run_critics(piece, with_baseline=with_baseline)
-            for piece in tensordict.split(self.max_batch, dim=0)
+            for piece in tensordict.split(rows, dim=0)
         ]
         value = torch.cat([value for value, _ in pieces])
         baseline = torch.cat([b for _, b in pieces]) if with_baseline else None
@@ -520,8 +528,9 @@ class MAPOCALoss(LossModule):
         Keyword Args:
             gamma: discount γ.
             lmbda: λ of the λ-returns.
-            max_batch: run the networks on at most this many rows of the leading batch dim at
-                a time (bounds memory; the results are the same); None runs them at once.
+            max_batch: run the networks on at most as many elements at a time as this many
+                rows of the leading batch dim hold (bounds memory; the results are the same);
+                None runs them at once.
             reuse_root_values: read V(s_{t+1}) from step t + 1 within episodes and run the
                 networks on ``"next"`` only at episode ends and the last step; exact for
                 collected trajectories (see :class:`MAPOCAValueEstimator`).

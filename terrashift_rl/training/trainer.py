@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
@@ -111,6 +112,11 @@ class TrainConfig:
     """On CUDA, replay the actor's collection step and the mini-batch update (loss, backward,
     clipping, AdamW) as CUDA graphs (:class:`~terrashift_rl.training.graphs.CudaGraphed`);
     ignored on other devices."""
+    deterministic: bool = False
+    """Use only deterministic algorithms (sets the process-wide
+    ``torch.use_deterministic_algorithms(True)`` and ``CUBLAS_WORKSPACE_CONFIG`` if unset), so
+    that a seeded run on CUDA repeats exactly on the same machine and software; on the CPU runs
+    repeat without it."""
 
     def validate(self) -> None:
         """Raises ``ValueError`` for impossible combinations, saying what to change."""
@@ -199,6 +205,10 @@ class MAPOCATrainer:
         self._graphs = config.cuda_graphs and self.device.type == "cuda"
         if self.device.type == "cuda":
             torch.backends.cuda.matmul.allow_tf32 = config.tf32
+        if config.deterministic:
+            # cuBLAS reads this when it first allocates its workspace
+            os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+            torch.use_deterministic_algorithms(True)
         self._prepare_optimizer()
         self._parameters = [p for group in self.optimizer.param_groups for p in group["params"]]
         # a tensor updated in place, so that a captured update reads each iteration's value

@@ -108,7 +108,7 @@ def test_partial_reset_touches_only_masked_environments():
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])
 def test_same_seed_reproduces_and_other_seed_differs(device):
-    actions = random_actions(6, TerraShiftEnv(num_envs=N, seed=0)).to(device)
+    actions = random_actions(6, TerraShiftEnv(num_envs=N, seed=0, device=device)).to(device)
     first = play(TerraShiftEnv(num_envs=N, seed=7, device=device), actions)
     again = play(TerraShiftEnv(num_envs=N, seed=7, device=device), actions)
     other = play(TerraShiftEnv(num_envs=N, seed=8, device=device), actions)

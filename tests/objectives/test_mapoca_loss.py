@@ -419,17 +419,31 @@ def test_td_lambda_gives_the_reference_returns():
     torch.testing.assert_close(data["value_target"].squeeze(-1), expected, **TOLERANCE)
 
 
-def test_value_estimation_in_pieces_gives_the_same_results():
+@pytest.mark.parametrize("reuse_root_values", [False, True])
+def test_value_estimation_in_pieces_gives_the_same_results(reuse_root_values):
     modules = make_modules()
     actor, value, baseline, _ = wrap(modules)
     whole, pieces = make_batch(actor), make_batch(actor)
     make_loss(actor, value, baseline).value_estimator(whole)
     loss = make_loss(actor, value, baseline).make_value_estimator(
-        ValueEstimators.GAE, gamma=GAMMA, lmbda=LMBDA, max_batch=1
+        ValueEstimators.GAE,
+        gamma=GAMMA,
+        lmbda=LMBDA,
+        max_batch=1,
+        reuse_root_values=reuse_root_values,
+    )
+    sizes = []  # elements of every call of the value network
+    hook = modules["value"].register_forward_pre_hook(
+        lambda module, args: sizes.append(args[0].shape[:-2].numel())
     )
     loss.value_estimator(pieces)
+    hook.remove()
     for key in ("state_value", "value_target", ("agents", "baseline"), ("agents", "advantage")):
         torch.testing.assert_close(pieces[key], whole[key], **TOLERANCE)
+    # one env's steps at a time; with reuse, "next" runs only where an episode ends or the
+    # batch does (3 states: env 0 at t = 1 and 2, env 1 at t = 2), in one call
+    expected = [N_STEPS] * N_ENVS * 2 if not reuse_root_values else [N_STEPS] * N_ENVS + [3]
+    assert sizes == expected
     with pytest.raises(ValueError, match="max_batch"):
         loss.make_value_estimator(ValueEstimators.GAE, max_batch=0)
 

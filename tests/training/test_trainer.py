@@ -1,5 +1,5 @@
-"""MAPOCATrainer on the real environment: the value-estimation shortcut, compiled networks, and
-CUDA-graph replay of acting and updating against eager execution."""
+"""MAPOCATrainer on the real environment: the value-estimation shortcut, compiled networks,
+CUDA-graph replay of acting and updating against eager execution, and deterministic runs."""
 
 import copy
 import dataclasses
@@ -191,3 +191,33 @@ def test_replayed_updates_give_the_eager_parameters(bf16):
     # bfloat16 keeps 8 significant bits, so its rounding differences are larger: 4% of the
     # movement on an H100, against under 1% in float32
     assert apart**0.5 < (0.1 if bf16 else 0.01) * moved**0.5
+
+
+@pytest.fixture
+def restores_determinism():
+    """``train.deterministic`` sets a process-wide switch: turn it back off after the test."""
+    yield
+    torch.use_deterministic_algorithms(False)
+
+
+@pytest.mark.gpu
+@pytest.mark.usefixtures("restores_determinism")
+def test_deterministic_runs_repeat_exactly_on_cuda():
+    runs = []
+    for _ in range(2):
+        torch.manual_seed(0)
+        networks = make_terrashift_networks(TerraShiftModelConfig.small()).to(CUDA)
+        env = make_training_env(ENV, networks, num_envs=8, device=CUDA, seed=0)
+        config = TrainConfig(num_envs=8, steps_per_iteration=8, minibatches=2, deterministic=True)
+        trainer = MAPOCATrainer(env, networks, config)
+        metrics = [trainer.train_iteration() for _ in range(3)]  # the third one replays graphs
+        runs.append((metrics, networks.state_dict()))
+    assert torch.are_deterministic_algorithms_enabled()
+    (first, first_weights), (second, second_weights) = runs
+    for one, other in zip(first, second, strict=True):
+        for name, value in one.items():
+            if not name.endswith(("_seconds", "_per_s")):
+                # episode metrics are NaN in an iteration where no episode ended
+                assert other[name] == pytest.approx(value, rel=0, abs=0, nan_ok=True), name
+    for name, value in first_weights.items():
+        assert torch.equal(second_weights[name], value), name
