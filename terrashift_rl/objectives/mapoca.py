@@ -117,9 +117,7 @@ class MAPOCAValueEstimator:
         # Step mode: every element runs from the recurrent state stored with it at collection
         # (and "next" from the state stored after the step), which reproduces the collection's
         # hidden states exactly, also across episode boundaries.
-        # the networks run on pieces of at most max_batch leading rows' worth of elements
-        rows = self.max_batch
-        row_size = math.prod(root.batch_size[1:])
+        rows = self.max_batch  # the networks' pieces hold at most this many rows' elements
         with set_exploration_type(ExplorationType.DETERMINISTIC), set_recurrent_mode(False):
             state_value, baseline = self._critics(root, with_baseline=True, rows=rows)
         agent_mask = loss._agent_mask(tensordict, baseline)
@@ -131,10 +129,10 @@ class MAPOCAValueEstimator:
                 fresh = done.squeeze(-1).clone()
                 fresh.select(time_dim, -1).fill_(True)
                 next_state_value = state_value.roll(-1, dims=time_dim)
-                # a flat batch: its rows are single elements
-                pieces = None if rows is None else rows * row_size
+                # a flat batch, whose rows are single elements
+                elements = None if rows is None else rows * math.prod(root.batch_size[1:])
                 next_state_value[fresh] = self._critics(
-                    next_step[fresh], with_baseline=False, rows=pieces
+                    next_step[fresh], with_baseline=False, rows=elements
                 )[0]
             else:
                 next_state_value, _ = self._critics(next_step, with_baseline=False, rows=rows)
