@@ -11,6 +11,7 @@ table and writes JSON.
     python benchmarks/train_throughput.py --settings 2048:2:8:fp32:graphs 2048:2:8:fp32:eager
     python benchmarks/train_throughput.py --device cpu --settings 8:1:2:fp32:eager --preset small
     python benchmarks/train_throughput.py --settings 2048:2:8:tf32:graphs --model embed_dim=64
+    python benchmarks/train_throughput.py --settings 2048:2:8:tf32:graphs --deterministic
 """
 
 from __future__ import annotations
@@ -93,6 +94,7 @@ def measure(setting: dict, args: argparse.Namespace, device: torch.device) -> di
         tf32=setting["precision"] != "fp32",
         compile=setting["execution"] == "compiled",
         cuda_graphs=setting["execution"] == "graphs",
+        deterministic=args.deterministic,
     )
     env = make_training_env(
         TerraShiftConfig.preset("pretrain"),
@@ -161,6 +163,11 @@ def main() -> None:
         help="network fields that replace the preset's, e.g. embed_dim=64 cnn_channels=[8,16,16]",
     )
     parser.add_argument(
+        "--deterministic",
+        action="store_true",
+        help="deterministic algorithms only (train.deterministic), for every setting",
+    )
+    parser.add_argument(
         "--out", type=Path, default=Path(__file__).parent / "results" / "train_throughput.json"
     )
     args = parser.parse_args()
@@ -170,7 +177,10 @@ def main() -> None:
     device = torch.device(args.device)
     name = device_name(device)
     fields = "".join(f" {field}={value}" for field, value in args.model.items())
-    print(f"MA-POCA training throughput, pretrain scene, {args.preset} network{fields}, {name}")
+    mode = ", deterministic algorithms" if args.deterministic else ""
+    print(
+        f"MA-POCA training throughput, pretrain scene, {args.preset} network{fields}{mode}, {name}"
+    )
     print(
         "  envs | ep x mb | prec |     exec | env-steps/s |  collect/s | coll s | est s  |"
         " epochs s | warmup s"
@@ -181,6 +191,7 @@ def main() -> None:
         "torch": torch.__version__,
         "preset": args.preset,
         "model": args.model,
+        "deterministic": args.deterministic,
         "rows": [],
     }
     for setting in args.settings:
