@@ -117,9 +117,12 @@ class MAPOCAValueEstimator:
         # Step mode: every element runs from the recurrent state stored with it at collection
         # (and "next" from the state stored after the step), which reproduces the collection's
         # hidden states exactly, also across episode boundaries.
-        rows = self.max_batch  # the networks' pieces hold at most this many rows' elements
+        # the networks run on pieces of at most as many elements as max_batch rows hold
+        elements = None
+        if self.max_batch is not None:
+            elements = self.max_batch * math.prod(root.batch_size[1:])
         with set_exploration_type(ExplorationType.DETERMINISTIC), set_recurrent_mode(False):
-            state_value, baseline = self._critics(root, with_baseline=True, rows=rows)
+            state_value, baseline = self._critics(root, with_baseline=True, elements=elements)
         agent_mask = loss._agent_mask(tensordict, baseline)
         batch_dims = tensordict.batch_dims
         done = _team_flag(tensordict.get(("next", *_as_tuple(keys.done))), agent_mask, batch_dims)
@@ -129,13 +132,13 @@ class MAPOCAValueEstimator:
                 fresh = done.squeeze(-1).clone()
                 fresh.select(time_dim, -1).fill_(True)
                 next_state_value = state_value.roll(-1, dims=time_dim)
-                # a flat batch, whose rows are single elements
-                elements = None if rows is None else rows * math.prod(root.batch_size[1:])
                 next_state_value[fresh] = self._critics(
-                    next_step[fresh], with_baseline=False, rows=elements
+                    next_step[fresh], with_baseline=False, elements=elements
                 )[0]
             else:
-                next_state_value, _ = self._critics(next_step, with_baseline=False, rows=rows)
+                next_state_value, _ = self._critics(
+                    next_step, with_baseline=False, elements=elements
+                )
         stored_value, stored_baseline = state_value, baseline
         normalizer = loss.value_normalizer
         if normalizer is not None:
@@ -191,10 +194,12 @@ class MAPOCAValueEstimator:
         return tensordict
 
     def _critics(
-        self, tensordict: TensorDictBase, *, with_baseline: bool, rows: int | None
+        self, tensordict: TensorDictBase, *, with_baseline: bool, elements: int | None
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """The loss's critics on ``tensordict``, ``rows`` leading rows at a time (in step mode
-        every element is independent, so the pieces give the same values)."""
+        """The loss's critics on ``tensordict``, in pieces of whole leading rows that hold at
+        most ``elements`` batch elements (at least one row; in step mode every element is
+        independent, so the pieces give the same values)."""
+        rows = None if elements is None else max(1, elements // math.prod(tensordict.shape[1:]))
         if rows is None or tensordict.shape[0] <= rows:
             return self.loss._run_critics(tensordict, with_baseline=with_baseline)
         pieces = [
