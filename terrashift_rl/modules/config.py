@@ -95,6 +95,11 @@ class TerraShiftModelConfig:
     """Hidden width of the shared policy MLP (d -> 192 -> 192)."""
     min_concentration: float = 1.01
     """Lower bound of both Beta concentrations; above 1 the density is unimodal and finite."""
+    policy_output_gain: float = 1.0
+    """Factor on the initial weights and biases of the policy's two output layers (PyTorch's
+    default initialisation at 1). Near 0, every agent starts from the same action distribution,
+    centred on the zero action whatever it observes; 0.01 is the setting Andrychowicz et al.
+    (2021, "What matters in on-policy reinforcement learning?") recommend."""
     critic_hidden_dim: int = 128
     """Hidden width of the value and baseline MLPs."""
 
@@ -133,6 +138,8 @@ class TerraShiftModelConfig:
             raise ValueError("gru_layers must be at least 1.")
         if self.min_concentration <= 0:
             raise ValueError("min_concentration must be positive.")
+        if self.policy_output_gain < 0:
+            raise ValueError(f"policy_output_gain must be >= 0, got {self.policy_output_gain}.")
 
     @property
     def token_grid_multiple(self) -> int:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
@@ -15,7 +16,8 @@ class BetaPolicyHead(nn.Module):
     """MLP (d -> 192 -> 192) with separate alpha and beta heads, one concentration per action dim.
 
     Concentrations are ``min_concentration + softplus(logit)``; above 1 both, the Beta density is
-    unimodal and vanishes at the ends of the action range.
+    unimodal and vanishes at the ends of the action range. The output layers start from
+    PyTorch's default initialisation times ``config.policy_output_gain``.
 
     Args:
         config: network sizes.
@@ -41,6 +43,10 @@ class BetaPolicyHead(nn.Module):
         )
         self.alpha_head = nn.Linear(hidden, action_dim)
         self.beta_head = nn.Linear(hidden, action_dim)
+        with torch.no_grad():
+            for head in (self.alpha_head, self.beta_head):
+                head.weight.mul_(config.policy_output_gain)
+                head.bias.mul_(config.policy_output_gain)
         self.min_concentration = config.min_concentration
 
     def forward(self, embedding: Tensor) -> tuple[Tensor, Tensor]:

@@ -125,3 +125,20 @@ def test_dropout_is_off_during_collection_and_on_in_updates(small_config, make_b
     networks.train()
     updated = networks.actor.get_dist(data.clone()).log_prob(collected[keys.ACTION])
     assert not torch.allclose(updated, collected[keys.ACTION_LOG_PROB], atol=1e-4)
+
+
+def test_policy_output_gain_scales_the_initial_action_distribution(small_config, make_batch):
+    data = make_batch((64,))
+    spreads = {}
+    for gain in (1.0, 0.01):
+        torch.manual_seed(0)
+        config = dataclasses.replace(small_config, policy_output_gain=gain)
+        networks = make_terrashift_networks(config, action_dim=ACTION_DIM).eval()
+        with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
+            mean = networks.actor(data.clone())[keys.ACTION]
+        spreads[gain] = mean.abs().max().item()
+    # Near zero, every agent's Beta starts at softplus(0) + 1.01 in both concentrations: the
+    # mean action is zero, whatever the observation; at PyTorch's default it is not.
+    assert spreads[0.01] < 2e-3 < 1e-2 < spreads[1.0]
+    with pytest.raises(ValueError, match="policy_output_gain"):
+        dataclasses.replace(small_config, policy_output_gain=-0.5)
