@@ -97,12 +97,22 @@ def make_logger(cfg: DictConfig, run_dir: Path, run_id: str | None) -> Logger | 
 
 # How the networks execute, not what they learn: a run may resume with other values.
 EXECUTION_SETTINGS = ("bf16", "tf32", "compile", "cuda_graphs", "deterministic")
+# What only sets the initial weights, which a checkpoint's weights replace.
+INITIALISATION_SETTINGS = ("policy_output_gain",)
+
+
+def network_settings(model_config: dict) -> dict:
+    """The model settings a checkpoint's weights depend on (``INITIALISATION_SETTINGS`` aside,
+    so checkpoints from before such a setting existed still load)."""
+    return {k: v for k, v in model_config.items() if k not in INITIALISATION_SETTINGS}
 
 
 def check_resumable(resume: dict, configs: dict, cfg: DictConfig) -> None:
     """Raises unless the checkpoint ``resume`` was trained with ``configs`` (env, model, train
-    and loss settings, execution settings aside), naming the overrides that would continue it."""
+    and loss settings, execution and initialisation settings aside), naming the overrides that
+    would continue it."""
     differ = []
+    configs = {**configs, "model_config": network_settings(configs["model_config"])}
     for name, group in (("env_config", "env"), ("model_config", "model"), ("train_config", "")):
         for key, value in configs[name].items():
             saved = resume[name].get(key)
@@ -221,7 +231,9 @@ def train(cfg: DictConfig) -> Path:
     networks = make_terrashift_networks(model_config).to(device)
     if cfg.run.pretrained:
         pretrained = load_checkpoint(cfg.run.pretrained)
-        if pretrained["model_config"] != configs["model_config"]:
+        if network_settings(pretrained["model_config"]) != network_settings(
+            configs["model_config"]
+        ):
             raise ValueError(
                 f"run.pretrained={cfg.run.pretrained} holds a network of another shape; use the "
                 "model settings it was trained with"

@@ -107,6 +107,7 @@ def test_smoke_train_resume_and_finetune(tmp_path):
         "run.pretrained=b/checkpoints/last.pt",
         "env.grid_size=10",
         "env.num_agents=6",
+        "model.policy_output_gain=0.5",  # initial weights, which the pretrained ones replace
         "hydra.run.dir=d",
         cwd=tmp_path,
     )
@@ -282,6 +283,21 @@ def test_evaluate_rejects_a_respawn_that_is_not_a_boolean(tmp_path):
     )
     assert result.returncode != 0
     assert "respawn must be false (evaluation mode) or true (training mode)" in result.stderr
+
+
+def test_resume_ignores_settings_that_only_set_the_initial_weights():
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
+        cfg = compose(config_name="smoke")
+    configs = {
+        "env_config": {"grid_size": 15},
+        "model_config": {"embed_dim": 32, "policy_output_gain": 0.01},
+        "train_config": {"minibatches": 2},
+    }
+    for saved_model in ({"embed_dim": 32, "policy_output_gain": 1.0}, {"embed_dim": 32}):
+        mapoca_pretrain.check_resumable({**configs, "model_config": saved_model}, configs, cfg)
+    wider = {**configs, "model_config": {"embed_dim": 64, "policy_output_gain": 0.01}}
+    with pytest.raises(ValueError, match="add model.embed_dim=64 to continue"):
+        mapoca_pretrain.check_resumable(wider, configs, cfg)
 
 
 def test_resume_names_the_settings_that_differ_from_the_checkpoints(tmp_path):
