@@ -41,6 +41,7 @@ from torchrl.modules import set_recurrent_mode
 
 from terrashift_rl.modules import TerraShiftModelConfig, keys, make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.sim.types import ACTION_NAMES
 from terrashift_rl.training import MAPOCATrainer, TrainConfig, load_checkpoint, make_training_env
 
 KINDS = ("goal", "past the side", "thrown above", "below the platform")
@@ -214,7 +215,8 @@ def main() -> None:
     print(
         "| checkpoint | env-steps | goal, past the side, thrown above, below | success "
         "| goal distance before past the side [m] | at speed limit, at amplitude limit, width "
-        "| median alpha + beta per action dim | dropout alone: KL, clip fraction 0.2, 0.1 "
+        f"| median alpha + beta per action ({', '.join(ACTION_NAMES)}) "
+        "| dropout alone: KL, clip fraction 0.2, 0.1 "
         "| baselines: spread across agents, effect of the actions |"
     )
     print("|---|---:|---|---:|---:|---|---|---|---|")

@@ -20,8 +20,9 @@ OBJECT_FEATURES = 9
 """Per-object observation: position (3), goal position (3), velocity (3)."""
 AGENT_FEATURES = 9
 """Per-agent observation: x, y, theta, amplitude, sigma_x, sigma_y, v_x, v_y, omega."""
-ACTION_DIM = 6
-"""Per-agent action: delta v_x, delta v_y, delta omega, delta amplitude, delta sigma_x, sigma_y."""
+ACTION_NAMES = ("v_x", "v_y", "omega", "amplitude", "sigma_x", "sigma_y")
+"""Per-agent action, each in [-1, 1]: the change of each of these wavelet quantities."""
+ACTION_DIM = len(ACTION_NAMES)
 
 
 @wp.struct

@@ -5,6 +5,7 @@ from terrashift_rl.training.schedules import LinearSchedule
 from terrashift_rl.training.trainer import (
     MAPOCATrainer,
     TrainConfig,
+    concentration_metrics,
     episode_metrics,
     iterate_until,
     make_training_env,
@@ -14,6 +15,7 @@ __all__ = [
     "LinearSchedule",
     "MAPOCATrainer",
     "TrainConfig",
+    "concentration_metrics",
     "episode_metrics",
     "iterate_until",
     "load_checkpoint",

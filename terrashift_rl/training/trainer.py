@@ -34,16 +34,14 @@ from terrashift_rl.envs import TerraShiftEnv
 from terrashift_rl.modules import TerraShiftNetworks, keys
 from terrashift_rl.objectives import MAPOCALoss, ValueNormalizer
 from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.sim.types import ACTION_NAMES
 from terrashift_rl.training.graphs import CudaGraphed
 from terrashift_rl.training.schedules import LinearSchedule
 
 # Collection writes these as by-products of acting; every pass of the update recomputes them
-# with the current parameters, so the batch does not keep them.
-_RECOMPUTED_KEYS = (
-    keys.AGENT_EMBEDDING,
-    keys.BETA_CONCENTRATION0,
-    keys.BETA_CONCENTRATION1,
-)
+# with the current parameters, so the batch does not keep them. (It keeps the Beta
+# concentrations, 12 numbers per agent-step, for `concentration_metrics`.)
+_RECOMPUTED_KEYS = (keys.AGENT_EMBEDDING,)
 
 
 @dataclass
@@ -245,6 +243,7 @@ class MAPOCATrainer:
         self.iteration += 1
         self.env_steps += frames
         metrics.update(episode_metrics(data))
+        metrics.update(concentration_metrics(data))
         metrics["env_steps_per_s"] = frames / (finished - start)
         metrics["collection_steps_per_s"] = frames / (collected - start)
         metrics["update_seconds"] = finished - collected
@@ -423,6 +422,20 @@ def episode_metrics(data: TensorDictBase) -> dict[str, float]:
         metrics["out_of_bounds_per_episode"] = lost.mean().item()
         metrics["success_rate"] = (goals.sum() / resolved).item() if resolved > 0 else math.nan
     return metrics
+
+
+def concentration_metrics(data: TensorDictBase) -> dict[str, float]:
+    """Per action dimension, ``concentration_<name>``: the median over the collected agent-steps
+    of the policy's Beta concentration alpha + beta: how sure the policy is of that action. In
+    docs/results.md, the runs that never learned to steer ended with the amplitude their most
+    concentrated action."""
+    total = data.get(keys.BETA_CONCENTRATION1) + data.get(keys.BETA_CONCENTRATION0)
+    # the lower median through a sort: median(dim) has no deterministic CUDA implementation
+    ordered = total.float().flatten(0, -2).sort(dim=0).values
+    medians = ordered[(len(ordered) - 1) // 2].tolist()
+    return {
+        f"concentration_{name}": value for name, value in zip(ACTION_NAMES, medians, strict=True)
+    }
 
 
 def iterate_until(

@@ -13,7 +13,13 @@ from torchrl.objectives import ValueEstimators
 
 from terrashift_rl.modules import TerraShiftModelConfig, keys, make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
-from terrashift_rl.training import MAPOCATrainer, TrainConfig, make_training_env
+from terrashift_rl.sim.types import ACTION_NAMES
+from terrashift_rl.training import (
+    MAPOCATrainer,
+    TrainConfig,
+    concentration_metrics,
+    make_training_env,
+)
 from terrashift_rl.training.graphs import CudaGraphed
 
 ENV = TerraShiftConfig(
@@ -54,6 +60,21 @@ def test_values_of_next_states_read_from_the_next_root_are_exact():
     trainer.loss.value_estimator(plain)
     for key in ESTIMATED:
         torch.testing.assert_close(reused[key], plain[key], atol=1e-5, rtol=1e-5)
+
+
+def test_concentration_metrics_are_the_median_alpha_plus_beta_of_each_action():
+    # five agent-steps (one environment, five decisions, one agent); action d's beta runs over
+    # (d + 1) * [5, 1, 4, 2, 3], alpha is 1, so its median alpha + beta is 1 + 3 (d + 1)
+    beta = torch.tensor([5.0, 1.0, 4.0, 2.0, 3.0])[:, None] * torch.arange(1.0, 7.0)
+    agents = {"concentration1": torch.ones(1, 5, 1, 6), "concentration0": beta[None, :, None]}
+    data = TensorDict({"agents": agents}, batch_size=[1, 5])
+    metrics = concentration_metrics(data)
+    assert list(metrics) == [f"concentration_{name}" for name in ACTION_NAMES]
+    assert list(metrics.values()) == [1.0 + 3.0 * (d + 1) for d in range(6)]
+
+    logged = make_trainer().train_iteration()  # a trainer logs them every iteration
+    floor = 2 * TerraShiftModelConfig.small().min_concentration
+    assert all(logged[key] > floor for key in metrics)
 
 
 @pytest.mark.slow  # tens of seconds of CPU compilation with a cold inductor cache
