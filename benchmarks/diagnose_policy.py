@@ -42,7 +42,13 @@ from torchrl.modules import set_recurrent_mode
 from terrashift_rl.modules import TerraShiftModelConfig, keys, make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.sim.types import ACTION_NAMES
-from terrashift_rl.training import MAPOCATrainer, TrainConfig, load_checkpoint, make_training_env
+from terrashift_rl.training import (
+    MAPOCATrainer,
+    TrainConfig,
+    concentration_metrics,
+    load_checkpoint,
+    make_training_env,
+)
 
 KINDS = ("goal", "past the side", "thrown above", "below the platform")
 
@@ -66,14 +72,14 @@ def rollout(networks, scene: TerraShiftConfig, args: argparse.Namespace, device)
     networks.eval()
     counts = dict.fromkeys(KINDS, 0)
     side_distance = []
-    at_speed_limit, at_amplitude_limit, width, concentration = [], [], [], []
+    at_speed_limit, at_amplitude_limit, width, policy = [], [], [], []
     td = env.reset()
     with set_exploration_type(ExplorationType.RANDOM):
         for _ in range(args.decisions):
             was_active = sim.view("sphere_active").clone()
             distance = sim.view("goal_distance").clone()
             td = networks.actor(td)
-            concentration.append(td[keys.BETA_CONCENTRATION0] + td[keys.BETA_CONCENTRATION1])
+            policy.append(td.select(keys.BETA_CONCENTRATION0, keys.BETA_CONCENTRATION1).clone())
             _, td = env.step_and_maybe_reset(td)
             position = sim.view("sphere_position")
             for e, j in ((was_active == 1) & (sim.view("sphere_active") == 0)).nonzero().tolist():
@@ -87,7 +93,6 @@ def rollout(networks, scene: TerraShiftConfig, args: argparse.Namespace, device)
             at_amplitude_limit.append((amplitude >= 0.99 * scene.max_amplitude).float().mean())
             width.append(sim.view("agent_sigma").mean())
     resolved = sum(counts.values())
-    concentration = torch.stack(concentration).flatten(0, -2)  # [decisions * envs * agents, A]
     return {
         "resolutions": counts,
         "success_rate": counts["goal"] / resolved if resolved else 0.0,
@@ -97,7 +102,7 @@ def rollout(networks, scene: TerraShiftConfig, args: argparse.Namespace, device)
         "share_at_speed_limit": torch.stack(at_speed_limit).mean().item(),
         "share_at_amplitude_limit": torch.stack(at_amplitude_limit).mean().item(),
         "mean_width_cells": torch.stack(width).mean().item(),
-        "median_concentration_per_dim": concentration.median(0).values.tolist(),
+        "median_concentration_per_dim": list(concentration_metrics(torch.stack(policy)).values()),
     }
 
 
