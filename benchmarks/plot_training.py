@@ -22,6 +22,8 @@ from common import read_series, run_label
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from terrashift_rl.sim.types import ACTION_NAMES
+
 TITLES = {
     "reward_per_decision": "mean team reward per decision",
     "success_rate": "success rate (goals / resolved)",
@@ -31,6 +33,7 @@ TITLES = {
     "entropy": "policy entropy (per agent)",
     "kl_approx": "approximate KL per update",
     "clip_fraction": "clip fraction",
+    **{f"concentration_{name}": f"median Beta α + β, {name}" for name in ACTION_NAMES},
 }
 DEFAULT_METRICS = ("reward_per_decision", "success_rate", "env_steps_per_s")
 
