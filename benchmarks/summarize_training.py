@@ -9,8 +9,11 @@ the overrides Hydra recorded there, any other folder by its name. A file
 columns. The numbers are those of the tables in ``docs/results.md``: env-steps and iterations
 logged, the median env-steps/s per iteration after the first, the means over the last
 ``--last`` iterations of the reward per decision and of goals and spheres lost per episode, the
-entropy at the first and last iteration, and per evaluated policy the success rate, goals and
-out-of-bounds per episode and reward per decision.
+take-off (the first iteration where the mean reward of the last ``--last`` crosses zero: its
+env-steps and the minutes of iterations up to it), the iterations whose training success rate,
+averaged the same way, is 0.9 or more (the highest such mean when none is), the entropy at the
+first and last iteration, and per evaluated policy the success rate, goals and out-of-bounds
+per episode and reward per decision.
 """
 
 from __future__ import annotations
@@ -23,12 +26,39 @@ from pathlib import Path
 from common import read_series, run_label
 
 
+def rolling_means(values: list[float], window: int) -> list[float]:
+    """Means of ``window`` consecutive values, one per value from the ``window``-th on."""
+    return [statistics.mean(values[i - window : i]) for i in range(window, len(values) + 1)]
+
+
+def take_off(steps: list[float], reward: list[float], speed: list[float], window: int) -> str:
+    """Env-steps and minutes at the first iteration whose ``window``-iteration mean reward per
+    decision is above zero; the minutes add up each iteration's env-steps over its env-steps/s."""
+    for i, mean in enumerate(rolling_means(reward, window), start=window - 1):
+        if mean > 0:
+            seconds = sum(
+                (step - previous) / rate
+                for step, previous, rate in zip(steps[: i + 1], [0.0, *steps], speed, strict=False)
+            )
+            return f"{steps[i] / 1e6:.1f} M, {seconds / 60:.1f} min"
+    return "none"
+
+
+def successful_iterations(success: list[float], window: int) -> str:
+    """Iterations whose ``window``-iteration mean success rate is 0.9 or more."""
+    means = rolling_means(success, window)
+    if not means:
+        return ""
+    count = sum(mean >= 0.9 for mean in means)
+    return f"{count}" if count else f"none (at most {max(means):.2f})"
+
+
 def row(folder: Path, last: int) -> list[str]:
     """The table cells of one run."""
     steps, reward = read_series(folder, "reward_per_decision")
     if not steps:
         raise SystemExit(f"{folder} has no reward_per_decision.csv: not a CSVLogger scalars folder")
-    speed = read_series(folder, "env_steps_per_s")[1][1:]
+    speed = read_series(folder, "env_steps_per_s")[1]
     entropy = read_series(folder, "entropy")[1]
     goals = read_series(folder, "goals_per_episode")[1][-last:]
     lost = read_series(folder, "out_of_bounds_per_episode")[1][-last:]
@@ -36,9 +66,11 @@ def row(folder: Path, last: int) -> list[str]:
         run_label(folder),
         f"{steps[-1] / 1e6:.2f} M",
         f"{len(steps)}",
-        f"{statistics.median(speed):,.0f}" if speed else "",
+        f"{statistics.median(speed[1:]):,.0f}" if speed[1:] else "",
         f"{statistics.mean(reward[-last:]):+.4f}",
         f"{statistics.mean(goals):.2f}, {statistics.mean(lost):.2f}" if goals and lost else "",
+        take_off(steps, reward, speed, last) if len(speed) == len(steps) else "",
+        successful_iterations(read_series(folder, "success_rate")[1], last),
         f"{entropy[0]:.2f} → {entropy[-1]:.2f}" if entropy else "",
     ]
     evaluation = folder.with_name(f"{folder.name}_evaluation.json")
@@ -67,6 +99,8 @@ def main() -> None:
         "env-steps/s",
         f"reward / decision, last {args.last}",
         f"goals, out of bounds / episode, last {args.last}",
+        "take-off",
+        f"training success ≥ 0.9 ({args.last}-iteration mean), iterations",
         "entropy, first → last",
         "evaluation, sampled: success, goals, out of bounds, reward",
         "evaluation, Beta mean: same",
