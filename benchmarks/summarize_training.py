@@ -4,8 +4,9 @@
 
 Each argument is a ``scalars`` folder written by torchrl's CSVLogger (``logger=csv``); a
 recipe's own folder (``<run dir>/logs/<run name>/scalars``) is labelled by its run folder and
-the overrides Hydra recorded there, any other folder by its name. A file
-``<folder>_evaluation.json`` beside it (``recipes/evaluate.py``'s output) adds the evaluation
+the overrides Hydra recorded there, any other folder by its name. Files
+``<folder>_evaluation.json`` and ``<folder>_training_mode_evaluation.json`` beside it
+(``recipes/evaluate.py``'s output, the second with ``respawn=true``) add the evaluation
 columns. The numbers are those of the tables in ``docs/results.md``: env-steps and iterations
 logged, the median env-steps/s per iteration after the first, the means over the last
 ``--last`` iterations of the reward per decision and of goals and spheres lost per episode, the
@@ -24,6 +25,8 @@ import statistics
 from pathlib import Path
 
 from common import read_series, run_label
+
+EVALUATIONS = ("_evaluation.json", "_training_mode_evaluation.json")
 
 
 def rolling_means(values: list[float], window: int) -> list[float]:
@@ -73,17 +76,18 @@ def row(folder: Path, last: int) -> list[str]:
         successful_iterations(read_series(folder, "success_rate")[1], last),
         f"{entropy[0]:.2f} → {entropy[-1]:.2f}" if entropy else "",
     ]
-    evaluation = folder.with_name(f"{folder.name}_evaluation.json")
-    scores = json.loads(evaluation.read_text()) if evaluation.is_file() else {}
-    for policy in ("stochastic", "deterministic"):
-        m = scores.get(policy)
-        cells.append(
-            ""
-            if m is None
-            else f"{m['success_rate']:.3f}, {m['goals_per_episode']:.2f}, "
-            f"{m['out_of_bounds_per_episode']:.2f}, {m['mean_reward_per_decision']:+.4f} "
-            f"({m['episodes']:.0f} episodes)"
-        )
+    for suffix in EVALUATIONS:
+        evaluation = folder.with_name(f"{folder.name}{suffix}")
+        scores = json.loads(evaluation.read_text()) if evaluation.is_file() else {}
+        for policy in ("stochastic", "deterministic"):
+            m = scores.get(policy)
+            cells.append(
+                ""
+                if m is None
+                else f"{m['success_rate']:.3f}, {m['goals_per_episode']:.2f}, "
+                f"{m['out_of_bounds_per_episode']:.2f}, {m['mean_reward_per_decision']:+.4f} "
+                f"({m['episodes']:.0f} episodes)"
+            )
     return cells
 
 
@@ -104,6 +108,8 @@ def main() -> None:
         "entropy, first → last",
         "evaluation, sampled: success, goals, out of bounds, reward",
         "evaluation, Beta mean: same",
+        "training mode, sampled: same",
+        "training mode, Beta mean: same",
     ]
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))
