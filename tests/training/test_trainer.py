@@ -66,8 +66,9 @@ def test_concentration_metrics_are_the_median_alpha_plus_beta_of_each_action():
     # five agent-steps (one environment, five decisions, one agent); action d's beta runs over
     # (d + 1) * [5, 1, 4, 2, 3], alpha is 1, so its median alpha + beta is 1 + 3 (d + 1)
     beta = torch.tensor([5.0, 1.0, 4.0, 2.0, 3.0])[:, None] * torch.arange(1.0, 7.0)
-    agents = {"concentration1": torch.ones(1, 5, 1, 6), "concentration0": beta[None, :, None]}
-    data = TensorDict({"agents": agents}, batch_size=[1, 5])
+    data = TensorDict(batch_size=[1, 5])
+    data.set(keys.BETA_CONCENTRATION1, torch.ones(1, 5, 1, 6))
+    data.set(keys.BETA_CONCENTRATION0, beta[None, :, None])
     metrics = concentration_metrics(data)
     assert list(metrics) == [f"concentration_{name}" for name in ACTION_NAMES]
     assert list(metrics.values()) == [1.0 + 3.0 * (d + 1) for d in range(6)]
