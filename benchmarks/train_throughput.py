@@ -12,6 +12,11 @@ table and writes JSON.
     python benchmarks/train_throughput.py --device cpu --settings 8:1:2:fp32:eager --preset small
     python benchmarks/train_throughput.py --settings 2048:2:8:tf32:graphs --model embed_dim=64
     python benchmarks/train_throughput.py --settings 2048:2:8:tf32:graphs --deterministic
+    python benchmarks/train_throughput.py --settings 2048:2:8:tf32:eager --profile 25
+
+``--profile N`` runs one more iteration per setting under ``torch.profiler`` and prints its N
+operators of most device time (CPU time on CPU), which go into the JSON too. Profile eager
+settings: kernels replayed from a CUDA graph are not attributed to operators.
 """
 
 from __future__ import annotations
@@ -26,13 +31,15 @@ from pathlib import Path
 
 import torch
 from common import device_name, write_results
+from torch.autograd import DeviceType
 
 from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training import MAPOCATrainer, TrainConfig, make_training_env
 
 PRECISIONS = ("fp32", "tf32", "bf16")  # tf32: float32 with TensorFloat-32 matrix products
-EXECUTIONS = ("eager", "graphs", "compiled")  # compiled: torch.compile, no CUDA graphs
+# compiled: torch.compile without CUDA graphs; compiled-graphs: compiled networks replayed in them
+EXECUTIONS = ("eager", "graphs", "compiled", "compiled-graphs")
 DEFAULT_SETTINGS = [
     "2048:2:8:fp32:graphs",  # the default recipe
     "2048:2:8:fp32:eager",
@@ -92,8 +99,8 @@ def measure(setting: dict, args: argparse.Namespace, device: torch.device) -> di
         minibatches=setting["minibatches"],
         bf16=setting["precision"] == "bf16",
         tf32=setting["precision"] != "fp32",
-        compile=setting["execution"] == "compiled",
-        cuda_graphs=setting["execution"] == "graphs",
+        compile=setting["execution"].startswith("compiled"),
+        cuda_graphs=setting["execution"].endswith("graphs"),
         deterministic=args.deterministic,
     )
     env = make_training_env(
@@ -130,7 +137,39 @@ def measure(setting: dict, args: argparse.Namespace, device: torch.device) -> di
     }
     if device.type == "cuda":
         result["peak_memory_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
+    if args.profile:
+        result["profile"] = profile_iteration(trainer, device, args.profile)
     return result
+
+
+def profile_iteration(trainer: MAPOCATrainer, device: torch.device, rows: int) -> list[dict]:
+    """One more iteration under torch.profiler; prints and returns its costliest operators.
+
+    On CUDA an operator's time is that of the kernels it launched, its share that of all
+    kernel time in the iteration.
+    """
+    cpu = torch.profiler.ProfilerActivity.CPU
+    activities = [cpu, torch.profiler.ProfilerActivity.CUDA] if device.type == "cuda" else [cpu]
+    with torch.profiler.profile(activities=activities) as profiler:
+        trainer.train_iteration()
+    averages = profiler.key_averages()
+    sort_by = "self_device_time_total" if device.type == "cuda" else "self_cpu_time_total"
+    print(averages.table(sort_by=sort_by, row_limit=rows))
+    events = [event for event in averages if not event.is_user_annotation]
+    operators = [event for event in events if event.device_type == DeviceType.CPU]
+    kernels = [event for event in events if event.device_type == DeviceType.CUDA]
+    measured = kernels or operators
+    total = sum(getattr(event, sort_by) for event in measured)
+    top = sorted(operators, key=lambda event: getattr(event, sort_by), reverse=True)[:rows]
+    return [
+        {
+            "operator": event.key,
+            "calls": event.count,
+            "self_ms": getattr(event, sort_by) / 1e3,
+            "share": getattr(event, sort_by) / total,
+        }
+        for event in top
+    ]
 
 
 def format_row(row: dict) -> str:
@@ -168,12 +207,19 @@ def main() -> None:
         help="deterministic algorithms only (train.deterministic), for every setting",
     )
     parser.add_argument(
+        "--profile",
+        type=int,
+        default=0,
+        metavar="N",
+        help="profile one more iteration per setting and print its N costliest operators",
+    )
+    parser.add_argument(
         "--out", type=Path, default=Path(__file__).parent / "results" / "train_throughput.json"
     )
     args = parser.parse_args()
     args.model = dict(args.model)
-    if args.warmup < 0 or args.iters < 1:
-        parser.error("--warmup must be >= 0 and --iters >= 1")
+    if args.warmup < 0 or args.iters < 1 or args.profile < 0:
+        parser.error("--warmup must be >= 0, --iters >= 1 and --profile >= 0")
     device = torch.device(args.device)
     name = device_name(device)
     fields = "".join(f" {field}={value}" for field, value in args.model.items())

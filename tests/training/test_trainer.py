@@ -164,8 +164,8 @@ def test_replayed_actor_step_gives_the_eager_outputs():
 
 
 @pytest.mark.gpu
-@pytest.mark.parametrize("bf16", [False, True])
-def test_replayed_updates_give_the_eager_parameters(bf16):
+@pytest.mark.parametrize(("bf16", "compile"), [(False, False), (True, False), (False, True)])
+def test_replayed_updates_give_the_eager_parameters(bf16, compile):
     torch.manual_seed(0)
     networks = make_terrashift_networks(MODEL)
     # the schedules change between the two updates below
@@ -182,8 +182,9 @@ def test_replayed_updates_give_the_eager_parameters(bf16):
     for graphs in (False, True):
         copied = copy.deepcopy(networks).to(CUDA)
         env = make_training_env(ENV, copied, num_envs=8, device=CUDA, seed=0)
+        # the replayed trainer's networks are also compiled when ``compile`` is set
         trainers[graphs] = MAPOCATrainer(
-            env, copied, dataclasses.replace(config, cuda_graphs=graphs)
+            env, copied, dataclasses.replace(config, cuda_graphs=graphs, compile=compile and graphs)
         )
     data = trainers[False].collect()
     for iteration in range(2):
