@@ -105,7 +105,7 @@ class TrainConfig:
     (:meth:`~terrashift_rl.envs.terrashift.TerraShiftEnv.stagger_episodes`)."""
     compile: bool = False
     """``torch.compile`` the networks (all but the GRU's loop over time); the first iterations
-    then include compilation."""
+    then include compilation. With ``cuda_graphs`` the compiled kernels replay in the graphs."""
     cuda_graphs: bool = True
     """On CUDA, replay the actor's collection step and the mini-batch update (loss, backward,
     clipping, AdamW) as CUDA graphs (:class:`~terrashift_rl.training.graphs.CudaGraphed`);

@@ -164,8 +164,8 @@ def test_replayed_actor_step_gives_the_eager_outputs():
 
 
 @pytest.mark.gpu
-@pytest.mark.parametrize(("bf16", "compile"), [(False, False), (True, False), (False, True)])
-def test_replayed_updates_give_the_eager_parameters(bf16, compile):
+@pytest.mark.parametrize(("bf16", "compiled"), [(False, False), (True, False), (False, True)])
+def test_replayed_updates_give_the_eager_parameters(bf16, compiled):
     torch.manual_seed(0)
     networks = make_terrashift_networks(MODEL)
     # the schedules change between the two updates below
@@ -182,10 +182,9 @@ def test_replayed_updates_give_the_eager_parameters(bf16, compile):
     for graphs in (False, True):
         copied = copy.deepcopy(networks).to(CUDA)
         env = make_training_env(ENV, copied, num_envs=8, device=CUDA, seed=0)
-        # the replayed trainer's networks are also compiled when ``compile`` is set
-        trainers[graphs] = MAPOCATrainer(
-            env, copied, dataclasses.replace(config, cuda_graphs=graphs, compile=compile and graphs)
-        )
+        # the replayed trainer's networks are also compiled when ``compiled`` is set
+        replayed = dataclasses.replace(config, cuda_graphs=graphs, compile=compiled and graphs)
+        trainers[graphs] = MAPOCATrainer(env, copied, replayed)
     data = trainers[False].collect()
     for iteration in range(2):
         metrics = {}
