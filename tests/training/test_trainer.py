@@ -183,8 +183,8 @@ def test_replayed_updates_give_the_eager_parameters(bf16, compiled):
         copied = copy.deepcopy(networks).to(CUDA)
         env = make_training_env(ENV, copied, num_envs=8, device=CUDA, seed=0)
         # the replayed trainer's networks are also compiled when ``compiled`` is set
-        replayed = dataclasses.replace(config, cuda_graphs=graphs, compile=compiled and graphs)
-        trainers[graphs] = MAPOCATrainer(env, copied, replayed)
+        variant = dataclasses.replace(config, cuda_graphs=graphs, compile=compiled and graphs)
+        trainers[graphs] = MAPOCATrainer(env, copied, variant)
     data = trainers[False].collect()
     for iteration in range(2):
         metrics = {}
