@@ -84,10 +84,10 @@ def nearest_wavelet_cells(sim, scene: TerraShiftConfig) -> torch.Tensor:
 
 
 @torch.no_grad()
-def rollout(env, act, scene: TerraShiftConfig, args: argparse.Namespace) -> dict:
+def rollout(env, sim, act, scene: TerraShiftConfig, args: argparse.Namespace) -> dict:
     """Resolutions, sphere, wavelet and concentration statistics of the policy ``act``
-    (sampled actions); concentrations only where ``act`` writes Beta parameters."""
-    sim = env.base_env.sim if hasattr(env, "base_env") else env.sim
+    (sampled actions) in ``env``, whose simulator is ``sim``; concentrations only where
+    ``act`` writes Beta parameters."""
     counts = dict.fromkeys(KINDS, 0)
     side_distance = []
     at_speed_limit, at_amplitude_limit, width, policy = [], [], [], []
@@ -200,7 +200,7 @@ def diagnose(path: Path, args: argparse.Namespace, device: torch.device) -> dict
     torch.manual_seed(args.seed)
     env = make_training_env(scene, networks, num_envs=args.envs, device=device, seed=args.seed)
     networks.eval()
-    rollout_statistics = rollout(env, networks.actor, scene, args)
+    rollout_statistics = rollout(env, env.base_env.sim, networks.actor, scene, args)
     trainer, data = collected_batch(networks, scene, args, device)
     return {
         "checkpoint": str(path),
@@ -220,7 +220,7 @@ def diagnose_heuristic(scene: TerraShiftConfig, args: argparse.Namespace, device
         "checkpoint": "scripted heuristic",
         "iteration": None,
         "env_steps": None,
-        **rollout(env, ScriptedHeuristicPolicy(scene), scene, args),
+        **rollout(env, env.sim, ScriptedHeuristicPolicy(scene), scene, args),
     }
 
 
