@@ -107,10 +107,10 @@ def rollout(env, sim, act, scene: TerraShiftConfig, args: argparse.Namespace) ->
                 concentration = (keys.BETA_CONCENTRATION0, keys.BETA_CONCENTRATION1)
                 policy.append(td.select(*concentration).clone())
             _, td = env.step_and_maybe_reset(td)
-            still_active = was_active & (sim.view("sphere_active") == 1)
-            approach.append((distance - sim.view("goal_distance"))[still_active].mean())
+            is_active = sim.view("sphere_active") == 1
+            approach.append((distance - sim.view("goal_distance"))[was_active & is_active].mean())
             position = sim.view("sphere_position")
-            for e, j in (was_active & (sim.view("sphere_active") == 0)).nonzero().tolist():
+            for e, j in (was_active & ~is_active).nonzero().tolist():
                 kind = resolution_kind(position[e, j], scene)
                 counts[kind] += 1
                 if kind == "past the side":
