@@ -230,11 +230,15 @@ class MAPOCALoss(LossModule):
     * ``loss_critic = value_coeff * mean(d(V, G))``, ``d`` the squared or Huber distance,
       ``max(d(V, G), d(V_old + clip(V - V_old, ±clip_value), G))`` when clipped;
     * ``loss_baseline = baseline_coeff * mean(d(b_i, G))``, clipped against b_old alike;
-    * ``loss_entropy = -entropy_coeff * mean(H_i)``, H_i summed over action dims.
+    * ``loss_entropy = -entropy_coeff * mean(H_i)``, H_i summed over action dims;
+    * with ``teacher_coeff``, ``loss_teacher = teacher_coeff * mean(|E[π(· | s)] - a*_i|²)``,
+      the squared distance (summed over action dims) from the policy's mean action to a
+      teacher's action a*_i read at the ``teacher_action`` key: a pull towards a demonstrator
+      (a scripted controller, an older policy) that a schedule can fade out.
 
-    The total loss is the sum of the four. Returns come from V alone on the team reward:
-    termination stops the bootstrap, truncation (and the end of the batch) bootstraps from
-    V(s_{t+1}), and done (terminated or truncated) stops the λ-recursion.
+    The total loss is the sum of the four (five with a teacher). Returns come from V alone on
+    the team reward: termination stops the bootstrap, truncation (and the end of the batch)
+    bootstraps from V(s_{t+1}), and done (terminated or truncated) stops the λ-recursion.
 
     The team reward and the done flags may sit at the root (``[*B, 1]``) or in the group
     (``[*B, K, 1]``), told apart by shape. A per-agent reward is reduced over the agents present
@@ -243,9 +247,9 @@ class MAPOCALoss(LossModule):
     and of the advantage normalisation; their action, log-prob and observation entries must
     still be finite. The networks must keep them out of the attention sets themselves.
 
-    ``entropy_coeff``, ``value_coeff``, ``baseline_coeff``, ``clip_epsilon`` and
-    ``clip_value`` (when built with a float) are buffers that torchrl's ``LossModule`` lets a
-    schedule assign in place: ``loss.entropy_coeff = 0.001`` keeps device and dtype.
+    The coefficients and clip ranges (``clip_value`` and ``teacher_coeff`` when not ``None``)
+    are float buffers that torchrl's ``LossModule`` lets a schedule assign in place:
+    ``loss.entropy_coeff = 0.001`` keeps device and dtype.
 
     Args:
         actor_network: the group's policy, e.g. a torchrl ``ProbabilisticActor`` writing the
@@ -273,6 +277,9 @@ class MAPOCALoss(LossModule):
         value_normalizer: a :class:`ValueNormalizer`: the value and baseline networks then
             learn normalised returns (the estimator keeps its statistics); ``None`` trains them
             on raw returns.
+        teacher_coeff: weight of the pull of the policy's mean action towards the
+            ``teacher_action`` key (the policy's distribution must have a ``mean``); ``None``
+            reads no teacher.
 
     Examples:
         >>> import torch
@@ -361,6 +368,7 @@ class MAPOCALoss(LossModule):
                 the old baselines, by the value-estimation pass.
             value_target: the λ-return G [*B, 1], written by the value-estimation pass.
             advantage: G - b_i [*B, K, 1], written by the value-estimation pass.
+            teacher_action: a teacher's action [*B, K, A], read with ``teacher_coeff`` only.
         """
 
         group: str = "agents"
@@ -374,13 +382,21 @@ class MAPOCALoss(LossModule):
         baseline: NestedKey = ("agents", "baseline")
         value_target: NestedKey = "value_target"
         advantage: NestedKey = ("agents", "advantage")
+        teacher_action: NestedKey = ("agents", "teacher_action")
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
     default_value_estimator = ValueEstimators.GAE
     SUPPORTED_VALUE_ESTIMATORS = (ValueEstimators.GAE, ValueEstimators.TDLambda)
     _schedulable_buffers = frozenset(
-        {"clip_epsilon", "entropy_coeff", "value_coeff", "baseline_coeff", "clip_value"}
+        {
+            "clip_epsilon",
+            "entropy_coeff",
+            "value_coeff",
+            "baseline_coeff",
+            "clip_value",
+            "teacher_coeff",
+        }
     )
 
     actor_network: ProbabilisticTensorDictSequential
@@ -404,6 +420,7 @@ class MAPOCALoss(LossModule):
         max_log_ratio: float | None = 8.0,
         team_reward_reduction: Literal["mean", "sum"] = "mean",
         value_normalizer: ValueNormalizer | None = None,
+        teacher_coeff: float | None = None,
     ) -> None:
         if team_reward_reduction not in ("mean", "sum"):
             raise ValueError(
@@ -420,11 +437,16 @@ class MAPOCALoss(LossModule):
         self.value_network = value_network
         self.baseline_network = baseline_network
         device = next(self.parameters()).device
-        self.register_coeff_buffer("clip_epsilon", clip_epsilon, device=device)
-        self.register_coeff_buffer("entropy_coeff", entropy_coeff, device=device)
-        self.register_coeff_buffer("value_coeff", value_coeff, device=device)
-        self.register_coeff_buffer("baseline_coeff", baseline_coeff, device=device)
-        self.register_coeff_buffer("clip_value", clip_value, device=device)
+        # float buffers: a schedule assigns fractions even to a coefficient built from an int
+        for name, value in (
+            ("clip_epsilon", clip_epsilon),
+            ("entropy_coeff", entropy_coeff),
+            ("value_coeff", value_coeff),
+            ("baseline_coeff", baseline_coeff),
+            ("clip_value", clip_value),
+            ("teacher_coeff", teacher_coeff),
+        ):
+            self.register_coeff_buffer(name, value, device=device, dtype=torch.float32)
         self.loss_critic_type = loss_critic_type
         self.normalize_advantage = normalize_advantage
         self.per_dimension_ratio = per_dimension_ratio
@@ -484,6 +506,8 @@ class MAPOCALoss(LossModule):
                 *(key for key in self.baseline_network.in_keys if key not in written),
             ]
             in_keys = [*network_inputs, keys.action, keys.sample_log_prob, keys.mask]
+            if self.teacher_coeff is not None:
+                in_keys.append(keys.teacher_action)
             in_keys += [("next", *_as_tuple(key)) for key in value_inputs]
             in_keys += [
                 ("next", *_as_tuple(key)) for key in (keys.reward, keys.done, keys.terminated)
@@ -512,6 +536,8 @@ class MAPOCALoss(LossModule):
         ]
         if self.clip_value is not None:
             keys += ["value_clip_fraction", "baseline_clip_fraction"]
+        if self.teacher_coeff is not None:
+            keys += ["loss_teacher", "teacher_distance"]
         return keys
 
     def make_value_estimator(
@@ -574,10 +600,11 @@ class MAPOCALoss(LossModule):
 
         Returns:
             A TensorDict of scalars: ``loss_objective``, ``loss_critic``, ``loss_baseline``,
-            ``loss_entropy`` (their sum is the loss to minimise) and the diagnostics
+            ``loss_entropy`` (the ``loss_*`` terms sum to the loss to minimise) and the diagnostics
             ``entropy``, ``clip_fraction``, ``kl_approx``, ``ESS``, ``explained_variance``,
-            ``explained_variance_baseline`` and, with ``clip_value``,
-            ``value_clip_fraction`` and ``baseline_clip_fraction``.
+            ``explained_variance_baseline``; with ``clip_value`` also ``value_clip_fraction``
+            and ``baseline_clip_fraction``, with ``teacher_coeff`` ``loss_teacher`` and
+            ``teacher_distance`` (the mean squared distance to the teacher's action).
         """
         keys = self.tensor_keys
         tensordict = tensordict.copy()
@@ -644,6 +671,12 @@ class MAPOCALoss(LossModule):
                 "loss_entropy": -self.entropy_coeff * entropy,
             }
         )
+        if self.teacher_coeff is not None:
+            teacher = tensordict.get(keys.teacher_action)
+            distance = (dist.mean - teacher).pow(2).sum(-1)
+            teacher_distance = _masked_mean(distance, agent_mask)
+            out.set("loss_teacher", self.teacher_coeff * teacher_distance)
+            out.set("teacher_distance", teacher_distance.detach())
         with torch.no_grad():
             joint_log_ratio = joint_log_prob - joint_old_log_prob
             if self.max_log_ratio is not None:

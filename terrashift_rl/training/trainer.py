@@ -31,6 +31,7 @@ from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import ValueEstimators
 
 from terrashift_rl.envs import TerraShiftEnv
+from terrashift_rl.envs.baselines import ScriptedHeuristicPolicy
 from terrashift_rl.modules import TerraShiftNetworks, keys
 from terrashift_rl.objectives import MAPOCALoss, ValueNormalizer
 from terrashift_rl.sim import TerraShiftConfig
@@ -42,6 +43,7 @@ from terrashift_rl.training.schedules import LinearSchedule
 # with the current parameters, so the batch does not keep them. (It keeps the Beta
 # concentrations, 12 numbers per agent-step, for `concentration_metrics`.)
 _RECOMPUTED_KEYS = (keys.AGENT_EMBEDDING,)
+TEACHER_ACTION = MAPOCALoss.default_keys.teacher_action
 
 
 @dataclass
@@ -86,6 +88,12 @@ class TrainConfig:
     max_grad_norm_end: float = 0.5
     schedule_iterations: int = 1000
     """Updates over which every schedule runs from start to end."""
+    teacher_coeff: float = 0.0
+    """Weight, at the start, of the pull of the policy's mean action towards the scripted
+    heuristic's action (:class:`~terrashift_rl.envs.baselines.ScriptedHeuristicPolicy`, computed
+    on every collected step); 0 trains without a teacher."""
+    teacher_iterations: int = 200
+    """Updates over which the teacher's weight falls linearly to 0."""
     value_coeff: float = 1.0
     """Weight of the value loss."""
     baseline_coeff: float = 0.5
@@ -130,6 +138,13 @@ class TrainConfig:
             )
         if not 0.0 < self.gamma <= 1.0 or not 0.0 <= self.lmbda <= 1.0:
             raise ValueError("train.gamma must be in (0, 1] and train.lmbda in [0, 1]")
+        if not self.teacher_coeff >= 0.0:
+            raise ValueError(f"train.teacher_coeff must be >= 0, got {self.teacher_coeff}")
+        if not isinstance(self.teacher_iterations, int) or self.teacher_iterations < 1:
+            raise ValueError(
+                f"train.teacher_iterations must be a positive integer, got "
+                f"{self.teacher_iterations!r}"
+            )
         if not 0.0 <= self.value_norm_decay < 1.0:
             raise ValueError(
                 f"train.value_norm_decay must be in [0, 1), got {self.value_norm_decay}"
@@ -178,7 +193,11 @@ class MAPOCATrainer:
             baseline_coeff=config.baseline_coeff,
             clip_value=config.value_clip_start,
             value_normalizer=normalizer,
+            teacher_coeff=config.teacher_coeff or None,
         ).to(self.device)
+        self.teacher = (
+            ScriptedHeuristicPolicy(env.base_env.config) if config.teacher_coeff else None
+        )
         # the estimation pass runs no bigger pieces than a training mini-batch: same memory bound
         self.loss.make_value_estimator(
             ValueEstimators.GAE,
@@ -225,6 +244,7 @@ class MAPOCATrainer:
             "max_grad_norm": LinearSchedule(
                 config.max_grad_norm_start, config.max_grad_norm_end, n
             ),
+            "teacher_coeff": LinearSchedule(config.teacher_coeff, 0.0, config.teacher_iterations),
         }
         self.iteration = 0
         self.env_steps = 0
@@ -266,7 +286,11 @@ class MAPOCATrainer:
                 step, td = self.env.step_and_maybe_reset(td)
                 frames.append(step)
         self._carry = td
-        return torch.stack(frames, dim=1)
+        data = torch.stack(frames, dim=1)
+        if self.teacher is not None:
+            observed = data.select(keys.AGENT_OBSERVATION, keys.OBJECTS, keys.OBJECTS_MASK)
+            data.set(TEACHER_ACTION, self.teacher(observed).get(keys.ACTION))
+        return data
 
     def _act(self, tensordict: TensorDictBase) -> TensorDictBase:
         return self.networks.actor(tensordict).select(*self._actor_outputs)
@@ -297,6 +321,8 @@ class MAPOCATrainer:
         metrics["lr_trunk_policy"] = float(self.optimizer.param_groups[0]["lr"])
         metrics["clip_epsilon"] = float(self.loss.clip_epsilon)
         metrics["entropy_coeff"] = float(self.loss.entropy_coeff)
+        if self.teacher is not None:
+            metrics["teacher_coeff"] = float(self.loss.teacher_coeff)
         metrics["estimation_seconds"] = estimation_seconds
         return metrics
 
@@ -371,6 +397,8 @@ class MAPOCATrainer:
         # the loss's coefficients are buffers: assigning a float copies in place
         for name in ("clip_epsilon", "entropy_coeff", "clip_value"):
             setattr(self.loss, name, self.schedules[name](self.iteration))
+        if self.teacher is not None:
+            self.loss.teacher_coeff = self.schedules["teacher_coeff"](self.iteration)
         self._max_grad_norm.fill_(self.schedules["max_grad_norm"](self.iteration))
 
     def _prepare_optimizer(self) -> None:

@@ -831,6 +831,93 @@ def test_coefficients_and_clip_ranges_are_schedulable():
     assert after["value_clip_fraction"].item() == 0.0 < before["value_clip_fraction"].item()
 
 
+def with_teacher(data: TensorDict, *, seed: int = 4) -> TensorDict:
+    """``data`` plus a random teacher action in [-1, 1] for every agent."""
+    generator = torch.Generator().manual_seed(seed)
+    shape = [*data["agents"].batch_size, ACTION_DIM]
+    data["agents", "teacher_action"] = 2 * torch.rand(shape, generator=generator) - 1
+    return data
+
+
+def test_teacher_term_is_the_masked_mean_squared_distance_to_the_teacher():
+    coeff = 0.7
+    actor, value, baseline, _ = wrap(make_modules())
+    data = with_teacher(make_batch(actor))
+    data["agents", "mask"][0, 1, 1] = False
+    loss = make_loss(actor, value, baseline, teacher_coeff=coeff)
+    with torch.no_grad():
+        mean = actor.get_dist(data.copy()).mean
+    distance = (mean - data["agents", "teacher_action"]).square().sum(-1)
+    expected = distance[data["agents", "mask"]].mean()
+    assert not torch.isclose(expected, distance.mean())  # the absent agent counts for nothing
+
+    out = loss(data.clone())
+    torch.testing.assert_close(out["teacher_distance"], expected)
+    torch.testing.assert_close(out["loss_teacher"], coeff * expected)
+    assert out["loss_teacher"].requires_grad and not out["teacher_distance"].requires_grad
+    # a third agent, absent everywhere, with a garbage teacher action changes nothing
+    extended = loss(with_absent_agent(data))
+    for key in ("loss_teacher", "teacher_distance"):
+        torch.testing.assert_close(extended[key], out[key])
+
+
+def test_teacher_term_pulls_the_policy_mean_towards_the_teacher():
+    modules = make_modules()
+    actor, value, baseline, _ = wrap(modules)
+    data = with_teacher(make_batch(actor))
+    loss = make_loss(actor, value, baseline, teacher_coeff=1.0)
+    loss.value_estimator(data)
+    loss(data)["loss_teacher"].backward()
+    for head in ("trunk", "policy"):
+        assert all(
+            p.grad is not None and p.grad.abs().sum() > 0 for p in modules[head].parameters()
+        )
+    for head in ("value", "baseline"):
+        assert all(p.grad is None or not p.grad.any() for p in modules[head].parameters())
+
+    optimizer = torch.optim.SGD(modules.parameters(), lr=0.1)
+    distances = []
+    for _ in range(20):
+        out = loss(data)
+        distances.append(out["teacher_distance"].item())
+        optimizer.zero_grad()
+        out["loss_teacher"].backward()
+        optimizer.step()
+    assert (torch.tensor(distances).diff() < 0).all(), distances  # every step gets closer
+    assert distances[-1] < 0.75 * distances[0], distances
+
+
+def test_teacher_keys_exist_only_with_a_teacher():
+    actor, value, baseline, _ = wrap(make_modules())
+    data = make_batch(actor)
+    teacher_outputs = {"loss_teacher", "teacher_distance"}
+    plain = make_loss(actor, value, baseline)
+    assert ("agents", "teacher_action") not in plain.in_keys
+    assert not teacher_outputs & set(plain.out_keys)
+    out = plain(data.clone())  # the batch has no teacher action: none is read
+    assert set(out.keys()) == set(plain.out_keys)
+
+    taught = make_loss(actor, value, baseline, teacher_coeff=0.5)
+    assert ("agents", "teacher_action") in taught.in_keys
+    out = taught(with_teacher(data))
+    assert set(out.keys()) == set(taught.out_keys) >= teacher_outputs
+    taught.set_keys(group="team")
+    assert ("team", "teacher_action") in taught.in_keys
+
+
+def test_teacher_coeff_is_schedulable():
+    actor, value, baseline, _ = wrap(make_modules())
+    data = with_teacher(make_batch(actor))
+    loss = make_loss(actor, value, baseline, teacher_coeff=1)  # an int, as Hydra may give it
+    buffer = loss.teacher_coeff
+    loss.teacher_coeff = 0.25
+    assert loss.teacher_coeff.item() == 0.25  # a float buffer: fractions are not truncated
+    loss.teacher_coeff = 0.0
+    out = loss(data)
+    assert loss.teacher_coeff is buffer and "teacher_coeff" in loss.state_dict()
+    assert out["loss_teacher"].item() == 0.0 < out["teacher_distance"].item()
+
+
 def test_diagnostics():
     modules = make_modules()
     actor, value, baseline, _ = wrap(modules)

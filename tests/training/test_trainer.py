@@ -11,6 +11,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import ValueEstimators
 
+from terrashift_rl.envs.baselines import ScriptedHeuristicPolicy
 from terrashift_rl.modules import TerraShiftModelConfig, keys, make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.sim.types import ACTION_NAMES
@@ -120,6 +121,49 @@ def test_a_checkpoint_with_capturable_adamw_resumes_without_cuda_graphs():
         assert isinstance(group["lr"], float) and not group["capturable"]
     resumed.train_iteration()  # AdamW would refuse tensor rates or a device step count here
     assert resumed.iteration == 2
+
+
+TEACHER = ("agents", "teacher_action")
+TEACHER_METRICS = {"teacher_coeff", "loss_teacher", "teacher_distance"}
+
+
+def test_teacher_action_is_the_scripted_heuristics_action():
+    data = make_trainer(teacher_coeff=1.0).collect()
+    observed = data.select(("agents", "observation"), "objects", "objects_mask").clone()
+    expected = ScriptedHeuristicPolicy(ENV)(observed).get(("agents", "action"))
+    teacher = data[TEACHER]
+    torch.testing.assert_close(teacher, expected)
+    assert teacher.shape == data["agents", "action"].shape
+    assert teacher.abs().max() <= 1.0 and teacher.abs().max() > 0
+    assert not torch.equal(teacher, data["agents", "action"])  # the policy's own stays
+
+
+def test_teacher_weight_falls_linearly_to_zero():
+    trainer = make_trainer(teacher_coeff=2.0, teacher_iterations=4)
+    # applied at the start of each update, at the iteration count before it
+    metrics = [trainer.train_iteration() for _ in range(6)]
+    assert [m["teacher_coeff"] for m in metrics] == [2.0, 1.5, 1.0, 0.5, 0.0, 0.0]
+    for m in metrics:
+        assert m["teacher_distance"] > 0
+        assert m["loss_teacher"] == pytest.approx(m["teacher_coeff"] * m["teacher_distance"])
+    assert metrics[-1]["loss_teacher"] == 0.0
+
+
+def test_no_teacher_by_default():
+    trainer = make_trainer()
+    data = trainer.collect()
+    assert TEACHER not in data.keys(include_nested=True)
+    assert not TEACHER_METRICS & trainer.update(data).keys()
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("teacher_coeff", -1.0), ("teacher_coeff", float("nan")), ("teacher_iterations", 0)],
+)
+def test_bad_teacher_settings_are_refused(field, value):
+    TrainConfig().validate()
+    with pytest.raises(ValueError, match=f"train.{field}"):
+        TrainConfig(**{field: value}).validate()
 
 
 def test_cuda_graphed_refuses_a_tensordict_off_cuda():
