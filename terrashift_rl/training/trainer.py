@@ -43,7 +43,6 @@ from terrashift_rl.training.schedules import LinearSchedule
 # with the current parameters, so the batch does not keep them. (It keeps the Beta
 # concentrations, 12 numbers per agent-step, for `concentration_metrics`.)
 _RECOMPUTED_KEYS = (keys.AGENT_EMBEDDING,)
-TEACHER_ACTION = MAPOCALoss.default_keys.teacher_action
 
 
 @dataclass
@@ -289,7 +288,7 @@ class MAPOCATrainer:
         data = torch.stack(frames, dim=1)
         if self.teacher is not None:
             observed = data.select(keys.AGENT_OBSERVATION, keys.OBJECTS, keys.OBJECTS_MASK)
-            data.set(TEACHER_ACTION, self.teacher(observed).get(keys.ACTION))
+            data.set(self.loss.tensor_keys.teacher_action, self.teacher(observed).get(keys.ACTION))
         return data
 
     def _act(self, tensordict: TensorDictBase) -> TensorDictBase:
