@@ -91,8 +91,11 @@ class TrainConfig:
     """Weight, at the start, of the pull of the policy's mean action towards the scripted
     heuristic's action (:class:`~terrashift_rl.envs.baselines.ScriptedHeuristicPolicy`, computed
     on every collected step); 0 trains without a teacher."""
+    teacher_coeff_end: float = 0.0
+    """The teacher's weight after ``teacher_iterations`` updates, held from then on; 0 lets
+    the policy learn from the reward alone."""
     teacher_iterations: int = 200
-    """Updates over which the teacher's weight falls linearly to 0."""
+    """Updates over which the teacher's weight falls linearly to ``teacher_coeff_end``."""
     value_coeff: float = 1.0
     """Weight of the value loss."""
     baseline_coeff: float = 0.5
@@ -139,6 +142,13 @@ class TrainConfig:
             raise ValueError("train.gamma must be in (0, 1] and train.lmbda in [0, 1]")
         if not self.teacher_coeff >= 0.0:
             raise ValueError(f"train.teacher_coeff must be >= 0, got {self.teacher_coeff}")
+        if not self.teacher_coeff_end >= 0.0:
+            raise ValueError(f"train.teacher_coeff_end must be >= 0, got {self.teacher_coeff_end}")
+        if self.teacher_coeff_end and not self.teacher_coeff:
+            raise ValueError(
+                f"train.teacher_coeff_end is {self.teacher_coeff_end} but train.teacher_coeff "
+                f"is 0 (no teacher): set train.teacher_coeff > 0 to train with a teacher"
+            )
         if not isinstance(self.teacher_iterations, int) or self.teacher_iterations < 1:
             raise ValueError(
                 f"train.teacher_iterations must be a positive integer, got "
@@ -243,7 +253,9 @@ class MAPOCATrainer:
             "max_grad_norm": LinearSchedule(
                 config.max_grad_norm_start, config.max_grad_norm_end, n
             ),
-            "teacher_coeff": LinearSchedule(config.teacher_coeff, 0.0, config.teacher_iterations),
+            "teacher_coeff": LinearSchedule(
+                config.teacher_coeff, config.teacher_coeff_end, config.teacher_iterations
+            ),
         }
         self.iteration = 0
         self.env_steps = 0

@@ -138,15 +138,19 @@ def test_teacher_action_is_the_scripted_heuristics_action():
     assert not torch.equal(teacher, data["agents", "action"])  # the policy's own stays
 
 
-def test_teacher_weight_falls_linearly_to_zero():
-    trainer = make_trainer(teacher_coeff=2.0, teacher_iterations=4)
+@pytest.mark.parametrize(
+    ("end", "expected"),
+    [(0.0, [2.0, 1.5, 1.0, 0.5, 0.0, 0.0]), (1.0, [2.0, 1.75, 1.5, 1.25, 1.0, 1.0])],
+)
+def test_teacher_weight_falls_linearly_to_its_end(end, expected):
+    trainer = make_trainer(teacher_coeff=2.0, teacher_coeff_end=end, teacher_iterations=4)
     # applied at the start of each update, at the iteration count before it
     metrics = [trainer.train_iteration() for _ in range(6)]
-    assert [m["teacher_coeff"] for m in metrics] == [2.0, 1.5, 1.0, 0.5, 0.0, 0.0]
+    assert [m["teacher_coeff"] for m in metrics] == expected
     for m in metrics:
         assert m["teacher_distance"] > 0
         assert m["loss_teacher"] == pytest.approx(m["teacher_coeff"] * m["teacher_distance"])
-    assert metrics[-1]["loss_teacher"] == 0.0
+    assert (metrics[-1]["loss_teacher"] == 0.0) == (end == 0.0)
 
 
 def test_no_teacher_by_default():
@@ -158,7 +162,13 @@ def test_no_teacher_by_default():
 
 @pytest.mark.parametrize(
     ("field", "value"),
-    [("teacher_coeff", -1.0), ("teacher_coeff", float("nan")), ("teacher_iterations", 0)],
+    [
+        ("teacher_coeff", -1.0),
+        ("teacher_coeff", float("nan")),
+        ("teacher_coeff_end", -1.0),
+        ("teacher_coeff_end", 1.0),  # with no teacher (teacher_coeff 0)
+        ("teacher_iterations", 0),
+    ],
 )
 def test_bad_teacher_settings_are_refused(field, value):
     TrainConfig().validate()
