@@ -19,22 +19,12 @@ import hydra
 import torch
 from mapoca_pretrain import resolve_device, structured
 from omegaconf import DictConfig
-from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.envs.utils import ExplorationType
 
 from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training import load_checkpoint, make_training_env
-from terrashift_rl.training.evaluation import evaluate, evaluate_baselines
-
-
-def trained_policy(networks, exploration: ExplorationType):
-    """The actor as a plain callable, with its exploration type fixed."""
-
-    def policy(td):
-        with set_exploration_type(exploration):
-            return networks.actor(td)
-
-    return policy
+from terrashift_rl.training.evaluation import actor_policy, evaluate, evaluate_baselines
 
 
 @hydra.main(version_base=None, config_path="configs", config_name="evaluate")
@@ -69,7 +59,7 @@ def main(cfg: DictConfig) -> None:
                     scene, networks, num_envs=cfg.episodes, device=device, seed=cfg.seed
                 )
                 torch.manual_seed(cfg.seed)  # the sampled actions draw from torch's generators
-                results[name] = evaluate(env, trained_policy(networks, exploration))
+                results[name] = evaluate(env, actor_policy(networks.actor, exploration))
                 print(f"policy ({name}): {results[name]}")
     if cfg.baselines:
         results["baselines"] = evaluate_baselines(
@@ -87,7 +77,7 @@ def main(cfg: DictConfig) -> None:
 
         if networks is not None:
             env = make_training_env(scene, networks, num_envs=1, device=device, seed=cfg.seed)
-            policy = trained_policy(networks, ExplorationType.DETERMINISTIC)
+            policy = actor_policy(networks.actor, ExplorationType.DETERMINISTIC)
         else:
             from terrashift_rl.envs import TerraShiftEnv
             from terrashift_rl.envs.baselines import ScriptedHeuristicPolicy

@@ -34,6 +34,7 @@ from terrashift_rl.training import (
     make_training_env,
     save_checkpoint,
 )
+from terrashift_rl.training.evaluation import evaluate_periodically
 
 # The env and model groups' files name the fields they change; these dataclasses supply the
 # others and their types, so every field can be set as `env.field=value` or `model.field=value`.
@@ -215,6 +216,13 @@ def train(cfg: DictConfig) -> Path:
             f"run.snapshot_every must be a positive integer or null (no snapshots), got "
             f"{snapshot_every!r}"
         )
+    eval_every, eval_episodes = cfg.run.eval_every, cfg.run.eval_episodes
+    if eval_every is not None and not (is_integer(eval_every) and eval_every >= 1):
+        raise ValueError(
+            f"run.eval_every must be a positive integer or null (no evaluation), got {eval_every!r}"
+        )
+    if not (is_integer(eval_episodes) and eval_episodes >= 1):
+        raise ValueError(f"run.eval_episodes must be a positive integer, got {eval_episodes!r}")
     device = resolve_device(cfg.run.device)
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
     checkpoints = run_dir / "checkpoints"
@@ -243,6 +251,14 @@ def train(cfg: DictConfig) -> Path:
         env_config, networks, num_envs=train_config.num_envs, device=device, seed=cfg.run.seed
     )
     trainer = MAPOCATrainer(env, networks, train_config)
+    # evaluation mode (no respawn), the same scenes at every evaluation
+    eval_env = eval_every and make_training_env(
+        env_config.replace(respawn=False),
+        networks,
+        num_envs=eval_episodes,
+        device=device,
+        seed=cfg.run.eval_seed,
+    )
     run_id = None
     best = {"reward": -math.inf, "recent": []}
     if resume is not None:
@@ -265,13 +281,22 @@ def train(cfg: DictConfig) -> Path:
         desc=cfg.run.name,
         dynamic_ncols=True,
     )
+
+    def evaluate_now() -> dict[str, float]:
+        return evaluate_periodically(eval_env, networks.actor, seed=cfg.run.eval_seed)
+
+    goal_fraction = "-"  # the latest evaluation's goal fraction, for the progress bar
     try:
         with StopRequest(progress) as stop:
             for metrics in iterate_until(
                 trainer, total_env_steps=cfg.run.total_env_steps, deadline=deadline
             ):
                 progress.update(trainer.env_steps - progress.n)
+                if eval_env and trainer.iteration % eval_every == 0:
+                    metrics.update(evaluate_now())
+                    goal_fraction = f"{metrics['eval_goal_fraction']:.3f}"
                 progress.set_postfix(
+                    eval_goals=goal_fraction,
                     reward=f"{metrics['reward_per_decision']:+.4f}",
                     steps_per_s=f"{metrics['env_steps_per_s']:,.0f}",
                 )
@@ -290,6 +315,12 @@ def train(cfg: DictConfig) -> Path:
                     break
             # between iterations: the state is consistent, the checkpoint resumes exactly
             save_checkpoint(checkpoint_state(trainer, configs, run_id, best), last)
+            if eval_env and trainer.iteration % eval_every:  # the final policy's score too
+                final = evaluate_now()
+                progress.write(f"evaluation at {trainer.env_steps:,} env-steps: {final}")
+                if logger is not None:
+                    for name, value in final.items():
+                        logger.log_scalar(name, value, step=trainer.env_steps)
     except KeyboardInterrupt:
         progress.write(f"interrupted mid-iteration; {last} is the last checkpoint written")
         raise SystemExit(130) from None

@@ -7,6 +7,7 @@ from collections.abc import Callable
 import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
 
 from terrashift_rl.envs.baselines import RandomPolicy, ScriptedHeuristicPolicy, ZeroPolicy
@@ -16,7 +17,28 @@ from terrashift_rl.sim.config import TerraShiftConfig
 Policy = Callable[[TensorDictBase], TensorDictBase]
 """Anything that writes ``("agents", "action")`` into the tensordict it is given."""
 
-__all__ = ["Policy", "evaluate", "evaluate_baselines"]
+__all__ = ["Policy", "actor_policy", "evaluate", "evaluate_baselines", "evaluate_periodically"]
+
+HEADLINE = (
+    "goal_fraction",
+    "success_rate",
+    "out_of_bounds_per_episode",
+    "mean_episode_length",
+    "mean_reward_per_decision",
+)
+"""The metrics every score is reported with, the goal fraction first: a policy that keeps its
+spheres still loses none and scores a high success rate, but not a high goal fraction."""
+
+
+def actor_policy(actor: Callable, exploration: ExplorationType) -> Policy:
+    """``actor`` (a TorchRL actor) as a :data:`Policy` with its exploration type fixed:
+    ``DETERMINISTIC`` acts with the distribution's mean, ``RANDOM`` samples."""
+
+    def policy(td: TensorDictBase) -> TensorDictBase:
+        with set_exploration_type(exploration):
+            return actor(td)
+
+    return policy
 
 
 def _scene_config(env: EnvBase) -> TerraShiftConfig:
@@ -172,3 +194,14 @@ def evaluate_baselines(
         env = TerraShiftEnv(config, num_envs=num_envs, device=device, seed=seed)
         results[name] = evaluate(env, policy, progress=progress)
     return results
+
+
+def evaluate_periodically(env: EnvBase, actor: Callable, *, seed: int) -> dict[str, float]:
+    """Scores ``actor``'s mean action (:func:`evaluate`) on the same scenes at every call:
+    ``env`` is reseeded with ``seed`` first, so that the scores of one run's successive
+    evaluations differ only by the policy. Returns :data:`HEADLINE`'s metrics, prefixed
+    ``eval_``; networks in the actor are left in eval mode (no dropout)."""
+    env.set_seed(seed)
+    actor.eval()
+    metrics = evaluate(env, actor_policy(actor, ExplorationType.DETERMINISTIC), progress=False)
+    return {f"eval_{name}": metrics[name] for name in HEADLINE}

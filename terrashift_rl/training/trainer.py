@@ -44,6 +44,11 @@ from terrashift_rl.training.schedules import LinearSchedule
 # concentrations, 12 numbers per agent-step, for `concentration_metrics`.)
 _RECOMPUTED_KEYS = (keys.AGENT_EMBEDDING,)
 
+LR_SCHEDULES = ("linear", "adaptive")
+"""Values of :attr:`TrainConfig.lr_schedule`."""
+_KL_STEP = 1.5
+"""Factor by which the adaptive schedule moves the learning rates after a mini-batch."""
+
 
 @dataclass
 class TrainConfig:
@@ -73,8 +78,20 @@ class TrainConfig:
     """AdamW learning rate of the trunk and the policy head at the start."""
     lr_value_baseline: float = 6.0e-4
     """AdamW learning rate of the value and baseline heads at the start."""
+    lr_schedule: str = "linear"
+    """How the trunk and policy's learning rate moves: ``linear`` from its start to
+    ``lr_end_factor`` times it over ``schedule_iterations`` updates; ``adaptive`` so that the
+    policy's KL divergence per update stays near ``desired_kl`` (RSL-RL's rule: after each
+    mini-batch's KL estimate, divide by 1.5 above twice the target, multiply by 1.5 below half
+    of it), within [lr_min, lr_max]. The value and baseline heads' rate is linear either way."""
     lr_end_factor: float = 0.1
-    """Both learning rates end at this fraction of their start."""
+    """Linear schedules end at this fraction of their learning rate's start."""
+    desired_kl: float = 0.01
+    """With ``lr_schedule=adaptive``, the KL divergence per update the learning rates aim at."""
+    lr_min: float = 1.0e-5
+    """With ``lr_schedule=adaptive``, the trunk and policy's smallest learning rate."""
+    lr_max: float = 1.0e-2
+    """With ``lr_schedule=adaptive``, the trunk and policy's largest learning rate."""
     weight_decay: float = 0.01
     """AdamW weight decay."""
     clip_epsilon_start: float = 0.2
@@ -96,6 +113,10 @@ class TrainConfig:
     the policy learn from the reward alone."""
     teacher_iterations: int = 200
     """Updates over which the teacher's weight falls linearly to ``teacher_coeff_end``."""
+    critic_warmup_iterations: int = 0
+    """Iterations at the start of a run that train only the value and baseline heads, with the
+    trunk and policy frozen: a pretrained policy then meets a new scene with critics fitted to
+    it (and return statistics re-estimated) instead of advantages from miscalibrated ones."""
     value_coeff: float = 1.0
     """Weight of the value loss."""
     baseline_coeff: float = 0.5
@@ -153,6 +174,26 @@ class TrainConfig:
             raise ValueError(
                 f"train.teacher_iterations must be a positive integer, got "
                 f"{self.teacher_iterations!r}"
+            )
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(
+                f"train.lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}"
+            )
+        for name in ("lr_trunk_policy", "lr_value_baseline", "desired_kl", "lr_min", "lr_max"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValueError(f"train.{name} must be a finite number > 0, got {value!r}")
+        if self.lr_schedule == "adaptive" and not (
+            self.lr_min <= self.lr_trunk_policy <= self.lr_max
+        ):
+            raise ValueError(
+                f"train.lr_trunk_policy ({self.lr_trunk_policy}) must lie in [train.lr_min, "
+                f"train.lr_max] = [{self.lr_min}, {self.lr_max}] with train.lr_schedule=adaptive"
+            )
+        if not isinstance(self.critic_warmup_iterations, int) or self.critic_warmup_iterations < 0:
+            raise ValueError(
+                f"train.critic_warmup_iterations must be an integer >= 0, got "
+                f"{self.critic_warmup_iterations!r}"
             )
         if not 0.0 <= self.value_norm_decay < 1.0:
             raise ValueError(
@@ -216,6 +257,7 @@ class MAPOCATrainer:
             reuse_root_values=True,  # collected trajectories: next[t] is the root of t + 1
         )
         policy_parameters = [*networks.trunk.parameters(), *networks.policy_head.parameters()]
+        self._policy_parameters = policy_parameters
         critic_parameters = [
             *networks.value_head.parameters(),
             *networks.baseline_head.parameters(),
@@ -237,8 +279,11 @@ class MAPOCATrainer:
             torch.use_deterministic_algorithms(True)
         self._prepare_optimizer()
         self._parameters = [p for group in self.optimizer.param_groups for p in group["params"]]
-        # a tensor updated in place, so that a captured update reads each iteration's value
+        # tensors updated in place, so that a captured update reads each iteration's value
         self._max_grad_norm = torch.tensor(config.max_grad_norm_start, device=self.device)
+        # factors on the base learning rates of the trunk and policy, and of the critics; an
+        # adaptive schedule moves the first inside the update
+        self._lr_scales = torch.ones(2, device=self.device)
         self._actor_inputs = networks.actor.in_keys
         self._actor_outputs = [k for k in networks.actor.out_keys if k not in _RECOMPUTED_KEYS]
         self._reset_graphs()
@@ -309,6 +354,7 @@ class MAPOCATrainer:
     def update(self, data: TensorDictBase) -> dict[str, float]:
         """Value estimation once, then epochs of shuffled mini-batches of sequences."""
         config = self.config
+        warmup = self.iteration < config.critic_warmup_iterations
         self._apply_schedules()
         self.networks.eval()
         start = time.perf_counter()
@@ -322,14 +368,18 @@ class MAPOCATrainer:
         for _ in range(config.epochs):
             order = torch.randperm(data.shape[0], device=self.device)
             for index in order.chunk(config.minibatches):
-                if len(index) not in self._update_steps:  # one graph per mini-batch size
-                    self._update_steps[len(index)] = self._graphed(self._update_step)
-                out = self._update_steps[len(index)](data[index])
+                step = (len(index), warmup)  # one graph per mini-batch size and kind of step
+                if step not in self._update_steps:
+                    self._update_steps[step] = self._graphed(
+                        self._critic_step if warmup else self._update_step
+                    )
+                out = self._update_steps[step](data[index])
                 for key, value in out.items():
                     sums[key] = sums.get(key, 0.0) + value.float()
                 count += 1
         metrics = {key: (value / count).item() for key, value in sums.items()}
         metrics["lr_trunk_policy"] = float(self.optimizer.param_groups[0]["lr"])
+        metrics["critic_warmup"] = float(warmup)
         metrics["clip_epsilon"] = float(self.loss.clip_epsilon)
         metrics["entropy_coeff"] = float(self.loss.entropy_coeff)
         if self.teacher is not None:
@@ -341,9 +391,26 @@ class MAPOCATrainer:
         """One gradient step on a mini-batch; returns the loss terms and diagnostics."""
         with set_recurrent_mode(True), self._autocast():
             out = self.loss(batch)
+        if self.config.lr_schedule == "adaptive":
+            self._adapt_learning_rate(out.get("kl_approx"))
         total = sum(value for key, value in out.items() if key.startswith("loss_"))
+        return self._step(out, total, frozen=())
+
+    def _critic_step(self, batch: TensorDictBase) -> TensorDictBase:
+        """A gradient step of the value and baseline heads alone: the trunk and the policy, whose
+        parameters get no gradient, are left exactly as they are (AdamW skips them)."""
+        with set_recurrent_mode(True), self._autocast():
+            out = self.loss(batch)
+        total = out.get("loss_critic") + out.get("loss_baseline")
+        return self._step(out, total, frozen=self._policy_parameters)
+
+    def _step(
+        self, out: TensorDictBase, total: torch.Tensor, frozen: list[torch.nn.Parameter] | tuple
+    ) -> TensorDictBase:
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
+        for parameter in frozen:
+            parameter.grad = None
         # clip_grad_norm_ reads max_norm on the host; this keeps it a tensor
         grads = [p.grad for p in self._parameters if p.grad is not None]
         grad_norm = torch.nn.utils.get_total_norm(grads)
@@ -395,16 +462,42 @@ class MAPOCATrainer:
         carry = state["carry"]
         self._carry = None if carry is None else carry.to(self.device)
         self._prepare_optimizer()
+        # an adaptive rate continues from where the checkpoint's put it
+        self._lr_scales[0].fill_(float(self.optimizer.param_groups[0]["lr"]) / self._base_lrs[0])
         self._reset_graphs()  # the optimiser's state tensors are new
 
     # --- helpers ---------------------------------------------------------------------------
+    def _adapt_learning_rate(self, kl: torch.Tensor) -> None:
+        """RSL-RL's rule on the KL estimate of the mini-batch about to be stepped: the trunk and
+        policy's rate moves by ``_KL_STEP`` when the KL leaves [target / 2, 2 target]. With CUDA
+        graphs the rates are tensors and this runs inside the captured update, without a host
+        synchronisation."""
+        target = self.config.desired_kl
+        kl = kl.detach().float()
+        step = torch.where(
+            kl > 2.0 * target,
+            1.0 / _KL_STEP,
+            torch.where(kl < 0.5 * target, _KL_STEP, 1.0),
+        )
+        base = self.config.lr_trunk_policy
+        scale = self._lr_scales[0]
+        scale.mul_(step).clamp_(self.config.lr_min / base, self.config.lr_max / base)
+        self._set_learning_rates()
+
+    def _set_learning_rates(self) -> None:
+        groups = self.optimizer.param_groups
+        for group, base, scale in zip(groups, self._base_lrs, self._lr_scales, strict=True):
+            if isinstance(group["lr"], torch.Tensor):
+                group["lr"].copy_(base * scale)
+            else:
+                group["lr"] = base * float(scale)
+
     def _apply_schedules(self) -> None:
         factor = self.schedules["lr_factor"](self.iteration)
-        for group, base in zip(self.optimizer.param_groups, self._base_lrs, strict=True):
-            if isinstance(group["lr"], torch.Tensor):
-                group["lr"].fill_(base * factor)
-            else:
-                group["lr"] = base * factor
+        self._lr_scales[1].fill_(factor)
+        if self.config.lr_schedule == "linear":
+            self._lr_scales[0].fill_(factor)
+        self._set_learning_rates()
         # the loss's coefficients are buffers: assigning a float copies in place
         for name in ("clip_epsilon", "entropy_coeff", "clip_value"):
             setattr(self.loss, name, self.schedules[name](self.iteration))
@@ -429,7 +522,7 @@ class MAPOCATrainer:
 
     def _reset_graphs(self) -> None:
         self._actor_step = self._graphed(self._act)
-        self._update_steps: dict[int, Callable] = {}
+        self._update_steps: dict[tuple[int, bool], Callable] = {}
 
     def _autocast(self) -> contextlib.AbstractContextManager:
         if self.config.bf16 and self.device.type == "cuda":

@@ -297,3 +297,75 @@ def test_deterministic_runs_repeat_exactly_on_cuda():
                 assert other[name] == pytest.approx(value, rel=0, abs=0, nan_ok=True), name
     for name, value in first_weights.items():
         assert torch.equal(second_weights[name], value), name
+
+
+@pytest.mark.parametrize(("kl_over_target", "factor"), [(3.0, 1 / 1.5), (1.0, 1.0), (0.2, 1.5)])
+def test_adaptive_learning_rate_moves_against_the_kl(kl_over_target, factor):
+    trainer = make_trainer(lr_schedule="adaptive", desired_kl=0.01)
+    trainer._apply_schedules()
+    before = [group["lr"] for group in trainer.optimizer.param_groups]
+    trainer._adapt_learning_rate(torch.tensor(0.01 * kl_over_target))
+    after = [group["lr"] for group in trainer.optimizer.param_groups]
+    assert after == pytest.approx([before[0] * factor, before[1]])  # the critics' rate stays
+
+
+def test_adaptive_learning_rate_stays_within_its_bounds_and_survives_a_resume():
+    # a KL target far above any update's KL: every mini-batch raises the rate, up to lr_max
+    trainer = make_trainer(lr_schedule="adaptive", desired_kl=10.0, lr_max=1.0e-3, epochs=2)
+    metrics = trainer.train_iteration()
+    assert metrics["kl_approx"] < 5.0
+    assert metrics["lr_trunk_policy"] == pytest.approx(3.0e-4 * 1.5**2)  # two mini-batches
+    metrics = trainer.train_iteration()
+    assert metrics["lr_trunk_policy"] == pytest.approx(1.0e-3)  # clamped
+    assert trainer.optimizer.param_groups[1]["lr"] == pytest.approx(6.0e-4 * (1 - 0.9 / 1000))
+    resumed = make_trainer(lr_schedule="adaptive", desired_kl=10.0, lr_max=1.0e-3, epochs=2)
+    resumed.load_state_dict(trainer.state_dict())
+    resumed._apply_schedules()  # an adaptive rate is not reset by the schedules
+    assert resumed.optimizer.param_groups[0]["lr"] == pytest.approx(1.0e-3)
+
+
+def test_linear_schedule_ignores_the_kl():
+    trainer = make_trainer(lr_end_factor=0.5, schedule_iterations=2)
+    rates = [trainer.train_iteration()["lr_trunk_policy"] for _ in range(3)]
+    assert rates == pytest.approx([3.0e-4, 2.25e-4, 1.5e-4])
+
+
+def test_critic_warmup_trains_the_critics_and_leaves_the_policy_untouched():
+    trainer = make_trainer(critic_warmup_iterations=2)
+    networks = trainer.networks
+    policy = {
+        name: p.detach().clone()
+        for module in (networks.trunk, networks.policy_head)
+        for name, p in module.named_parameters()
+    }
+    critics = [p.detach().clone() for p in networks.value_head.parameters()]
+    for _ in range(2):
+        assert trainer.train_iteration()["critic_warmup"] == 1.0
+    for module in (networks.trunk, networks.policy_head):
+        for name, p in module.named_parameters():
+            assert torch.equal(p, policy[name]), name  # bit for bit, weight decay included
+    assert any(
+        not torch.equal(p, q)
+        for p, q in zip(networks.value_head.parameters(), critics, strict=True)
+    )
+    assert trainer.train_iteration()["critic_warmup"] == 0.0  # then the policy learns
+    assert any(
+        not torch.equal(p, policy[name]) for name, p in networks.policy_head.named_parameters()
+    )
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("lr_schedule", "cosine"),
+        ("desired_kl", 0.0),
+        ("desired_kl", float("nan")),
+        ("lr_trunk_policy", -1e-4),
+        ("lr_max", float("inf")),
+        ("lr_min", 1.0),  # above lr_trunk_policy, with the adaptive schedule
+        ("critic_warmup_iterations", -1),
+    ],
+)
+def test_bad_learning_rate_settings_are_refused(field, value):
+    with pytest.raises(ValueError, match=f"train.{field}"):
+        TrainConfig(**{"lr_schedule": "adaptive", field: value}).validate()
