@@ -33,6 +33,9 @@ TITLES = {
     "entropy": "policy entropy (per agent)",
     "kl_approx": "approximate KL per update",
     "clip_fraction": "clip fraction",
+    "lr_trunk_policy": "learning rate, trunk and policy",
+    "eval_goal_fraction": "goal fraction (evaluation mode)",
+    "eval_success_rate": "success rate (evaluation mode)",
     **{f"concentration_{name}": f"median Beta α + β, {name}" for name in ACTION_NAMES},
 }
 DEFAULT_METRICS = ("reward_per_decision", "success_rate", "env_steps_per_s")

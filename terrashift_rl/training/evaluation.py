@@ -78,9 +78,9 @@ def evaluate(
         progress: show a tqdm bar over the decisions.
 
     Returns:
-        ``episodes``; ``success_rate``, goals over resolved objects (goals plus out of bounds;
-        0 if nothing was resolved); ``goal_fraction``, goals over ``episodes * num_objects`` (above
-        1 in training mode when respawned spheres reach their goals);
+        ``goal_fraction``, goals over ``episodes * num_objects`` (the headline; above 1 in
+        training mode when respawned spheres reach their goals); ``success_rate``, goals over
+        resolved objects (goals plus out of bounds; 0 if nothing was resolved); ``episodes``;
         ``goals_per_episode``; ``out_of_bounds_per_episode``; ``mean_reward_per_decision``, the
         team reward averaged over each environment's decisions of its episode, then over the
         environments; ``mean_episode_length`` in decisions; ``terminated_fraction``, the share of
@@ -138,9 +138,9 @@ def evaluate(
     total_lost = float(lost.sum())
     resolved = total_goals + total_lost
     return {
-        "episodes": float(num_envs),
-        "success_rate": total_goals / resolved if resolved > 0 else 0.0,
         "goal_fraction": total_goals / (num_envs * config.num_objects),
+        "success_rate": total_goals / resolved if resolved > 0 else 0.0,
+        "episodes": float(num_envs),
         "goals_per_episode": total_goals / num_envs,
         "out_of_bounds_per_episode": total_lost / num_envs,
         "mean_reward_per_decision": float((reward_sum / length.double()).mean()),
