@@ -8,8 +8,15 @@ from torchrl.envs import InitTracker, StepCounter, TransformedEnv
 
 from terrashift_rl.envs import GROUP, TerraShiftEnv
 from terrashift_rl.envs.baselines import RandomPolicy, ScriptedHeuristicPolicy, ZeroPolicy
+from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
-from terrashift_rl.training.evaluation import evaluate, evaluate_baselines
+from terrashift_rl.training import make_training_env
+from terrashift_rl.training.evaluation import (
+    HEADLINE,
+    evaluate,
+    evaluate_baselines,
+    evaluate_periodically,
+)
 
 STEPS = 96
 CFG = TerraShiftConfig(max_episode_steps=STEPS, respawn=False)
@@ -122,3 +129,14 @@ def test_heuristic_beats_random_and_zero():
         assert heuristic["goals_per_episode"] > other["goals_per_episode"] + 1.0
         assert heuristic["success_rate"] > other["success_rate"]
         assert heuristic["mean_reward_per_decision"] > other["mean_reward_per_decision"]
+
+
+def test_periodic_evaluation_scores_the_mean_action_on_the_same_scenes_each_time():
+    scene = TerraShiftConfig(max_episode_steps=12, respawn=False)
+    networks = make_terrashift_networks(TerraShiftModelConfig.small())
+    env = make_training_env(scene, networks, num_envs=4, device=torch.device("cpu"), seed=5)
+    first = evaluate_periodically(env, networks.actor, seed=5)
+    assert list(first) == [f"eval_{name}" for name in HEADLINE]
+    env.rollout(7, break_when_any_done=False)  # moves the environments' generator on
+    assert evaluate_periodically(env, networks.actor, seed=5) == first  # same scenes, mean action
+    assert evaluate_periodically(env, networks.actor, seed=6) != first  # other scenes
