@@ -237,6 +237,7 @@ class TerraShiftConfig:
             "max_angular_velocity",
             "max_amplitude",
             "sigma_min",
+            "sigma_max",
             "sphere_radius",
             "sphere_mass",
             "contact_stiffness",
@@ -272,6 +273,10 @@ class TerraShiftConfig:
             "alignment_scale",
         ):
             _check_float(self, name)
+        for name in ("wrap_edges", "respawn"):
+            value = getattr(self, name)
+            if not isinstance(value, bool):
+                raise ValueError(f"{name} must be true or false, got {value!r}")
         if self.column_shape not in COLUMN_SHAPES:
             raise ValueError(
                 f"column_shape must be one of {COLUMN_SHAPES}, got {self.column_shape!r}"

@@ -37,11 +37,20 @@ def test_presets_hold_the_paper_settings():
         ({"spawn_margin": 8}, "spawn_margin"),
         ({"max_column_height": 0.2}, "column_rest_top"),
         ({"substeps": 2.5}, "substeps must be an integer"),
+        ({"wrap_edges": "no"}, "wrap_edges must be true or false, got 'no'"),
+        ({"respawn": "false"}, "respawn must be true or false, got 'false'"),
+        ({"sigma_max": "wide"}, "sigma_max must be a finite number, got 'wide'"),
     ],
 )
 def test_validation_names_the_field(overrides, message):
     with pytest.raises(ValueError, match=message):
         TerraShiftConfig(**overrides)
+
+
+@pytest.mark.parametrize("field", [f.name for f in dataclasses.fields(TerraShiftConfig)])
+def test_a_value_of_the_wrong_type_is_refused_by_name(field):
+    with pytest.raises(ValueError, match=f"^{field} .*got 'junk'"):
+        TerraShiftConfig(**{field: "junk"})
 
 
 def test_replace_rejects_unknown_fields():
