@@ -1,13 +1,22 @@
 """TerraShift networks as TensorDict modules: shared trunk, Beta actor, MA-POCA critics.
 
-Start with :func:`make_terrashift_networks`; :mod:`terrashift_rl.modules.networks` documents
+For another environment with flat per-agent observations, :class:`CentralValue` and
+:class:`CounterfactualBaseline` are MA-POCA's critics built from plain sizes. For TerraShift,
+start with :func:`make_terrashift_networks`; :mod:`terrashift_rl.modules.networks` documents
 how the trunk is shared and which keys every module reads and writes, and
 :mod:`terrashift_rl.modules.trunk` the recurrent-state conventions.
 """
 
 from terrashift_rl.modules import keys
 from terrashift_rl.modules.config import TerraShiftModelConfig
-from terrashift_rl.modules.critics import CentralValueHead, CounterfactualBaselineHead
+from terrashift_rl.modules.critics import (
+    AttentionBaseline,
+    AttentionValue,
+    CentralValue,
+    CentralValueHead,
+    CounterfactualBaseline,
+    CounterfactualBaselineHead,
+)
 from terrashift_rl.modules.distributions import ScaledBeta
 from terrashift_rl.modules.entities import AgentEncoder, ObjectEncoder
 from terrashift_rl.modules.heightmap import AdaptiveSpatialTokenizer, HeightmapEncoder
@@ -18,8 +27,12 @@ from terrashift_rl.modules.trunk import SharedEmbeddingNetwork, TerraShiftTrunk
 __all__ = [
     "AdaptiveSpatialTokenizer",
     "AgentEncoder",
+    "AttentionBaseline",
+    "AttentionValue",
     "BetaPolicyHead",
+    "CentralValue",
     "CentralValueHead",
+    "CounterfactualBaseline",
     "CounterfactualBaselineHead",
     "HeightmapEncoder",
     "ObjectEncoder",

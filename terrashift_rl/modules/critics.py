@@ -1,22 +1,175 @@
 """MA-POCA's centralised value V(s) and counterfactual baselines b_i(s, a_-i).
 
-Both heads read the per-agent embeddings of the shared trunk and pool over the agents that are
-present, so they work with any number of agents and ignore absent ones.
+Two networks, as Unity ML-Agents' POCA builds them: V(s) attends over every agent's features
+and pools them; agent i's baseline attends over agent i's own features and the other agents'
+feature-action pairs, so it sees everyone's action but i's. Both use residual self-attention
+and a mean over the agents present, so they take any number of agents and ignore absent ones.
+
+- :class:`CentralValue` and :class:`CounterfactualBaseline` are TensorDict modules for any
+  environment with flat per-agent observations ``[*B, K, O]``, built from plain sizes: what to
+  hand :class:`~terrashift_rl.objectives.MAPOCALoss` in another TorchRL project.
+- :class:`CentralValueHead` and :class:`CounterfactualBaselineHead` are the same networks on the
+  per-agent embeddings of TerraShift's shared trunk, sized by a :class:`TerraShiftModelConfig`.
+- :class:`AttentionValue` and :class:`AttentionBaseline` are the plain ``nn.Module`` both
+  kinds are built from, for inputs of another form (pass your own encoders).
 """
 
 from __future__ import annotations
 
 import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
 from torch import Tensor, nn
 
 from terrashift_rl.modules.config import TerraShiftModelConfig
-from terrashift_rl.modules.layers import ResidualSelfAttention, feed_forward, masked_mean
+from terrashift_rl.modules.layers import ResidualSelfAttention, UpdateDropout, masked_mean
 
-__all__ = ["CentralValueHead", "CounterfactualBaselineHead"]
+__all__ = [
+    "AttentionBaseline",
+    "AttentionValue",
+    "CentralValue",
+    "CentralValueHead",
+    "CounterfactualBaseline",
+    "CounterfactualBaselineHead",
+]
 
 
-class CentralValueHead(nn.Module):
-    """V(s): residual self-attention over agent embeddings, masked mean over agents, MLP -> 1.
+def _mlp(
+    in_dim: int, hidden_dim: int, out_dim: int, *, depth: int, dropout: float
+) -> nn.Sequential:
+    """``depth`` hidden layers (Linear -> GELU -> dropout), then Linear -> ``out_dim``.
+
+    ``depth=1`` is :func:`~terrashift_rl.modules.layers.feed_forward`, parameter names included.
+    """
+    if depth < 0:
+        raise ValueError(f"depth must be a non-negative number of hidden layers, got {depth}.")
+    layers: list[nn.Module] = []
+    for layer in range(depth):
+        layers += [
+            nn.Linear(in_dim if layer == 0 else hidden_dim, hidden_dim),
+            nn.GELU(),
+            UpdateDropout(dropout),
+        ]
+    layers.append(nn.Linear(hidden_dim if depth else in_dim, out_dim))
+    return nn.Sequential(*layers)
+
+
+class _AttentionPool(nn.Module):
+    """Residual self-attention over a set, masked mean over it, MLP -> 1."""
+
+    attention: ResidualSelfAttention
+    mlp: nn.Sequential
+
+    def _add_pool(
+        self, width: int, num_heads: int, hidden_dim: int, *, depth: int, dropout: float
+    ) -> None:
+        self.attention = ResidualSelfAttention(width, num_heads, dropout=dropout)
+        self.mlp = _mlp(width, hidden_dim, 1, depth=depth, dropout=dropout)
+
+    def _pool(self, tokens: Tensor, key_mask: Tensor | None) -> Tensor:
+        attended = self.attention(tokens, key_mask)
+        # float32 out, also under bf16 autocast: returns and value losses need the precision
+        return self.mlp(masked_mean(attended, key_mask)).float()
+
+
+class AttentionValue(_AttentionPool):
+    """V(s) of a team: encoder per agent, residual self-attention, masked mean, MLP -> 1.
+
+    Invariant to the order of the agents; absent agents (mask False) change nothing.
+
+    Args:
+        encoder: maps one agent's features [..., F] to [..., width].
+
+    Keyword Args:
+        width: width of the encoded agents and of the MLP's hidden layers.
+        num_heads: attention heads; divides ``width``.
+        hidden_dim: width of the MLP's hidden layers after pooling.
+        depth: hidden layers of that MLP.
+        dropout: dropout in backpropagated passes only (see :mod:`~terrashift_rl.modules.layers`).
+
+    Examples:
+        >>> value = AttentionValue(nn.Linear(5, 16), width=16, num_heads=2, hidden_dim=32)
+        >>> value(torch.randn(4, 3, 5)).shape
+        torch.Size([4, 1])
+    """
+
+    def __init__(
+        self,
+        encoder: nn.Module,
+        *,
+        width: int,
+        num_heads: int,
+        hidden_dim: int,
+        depth: int = 1,
+        dropout: float = 0.0,
+    ) -> None:
+        super().__init__()
+        self.encoder = encoder
+        self._add_pool(width, num_heads, hidden_dim, depth=depth, dropout=dropout)
+
+    def forward(self, features: Tensor, agent_mask: Tensor | None = None) -> Tensor:
+        """Value [..., 1] of per-agent features [..., K, F] (mask [..., K], True = present)."""
+        return self._pool(self.encoder(features), agent_mask)
+
+
+class AttentionBaseline(_AttentionPool):
+    """b_i: the value of the state with agent i's own action left out, for every agent i.
+
+    For agent i the set is ``{g(x_i)} + {f(x_j, a_j) : j != i, j present}`` with ``g`` the
+    ``own_state`` and ``f`` the ``other_state_action`` encoder; residual self-attention, masked
+    mean, MLP -> 1. All agents are computed at once: a [..., K, K, width] tensor whose row i holds
+    f(x_j, a_j) everywhere except g(x_i) at position i, with a key mask that drops absent agents.
+    Permuting the agents permutes the baselines alike.
+
+    Args:
+        own_state: maps one agent's features [..., F] to [..., width].
+        other_state_action: maps one agent's features and action [..., F + A] to [..., width].
+
+    Keyword Args:
+        width: width of the encoded set.
+        num_heads: attention heads; divides ``width``.
+        hidden_dim: width of the MLP's hidden layers after pooling.
+        depth: hidden layers of that MLP.
+        dropout: dropout in backpropagated passes only.
+
+    Examples:
+        >>> baseline = AttentionBaseline(
+        ...     nn.Linear(5, 16), nn.Linear(5 + 2, 16), width=16, num_heads=2, hidden_dim=32)
+        >>> baseline(torch.randn(4, 3, 5), torch.randn(4, 3, 2)).shape
+        torch.Size([4, 3, 1])
+    """
+
+    def __init__(
+        self,
+        own_state: nn.Module,
+        other_state_action: nn.Module,
+        *,
+        width: int,
+        num_heads: int,
+        hidden_dim: int,
+        depth: int = 1,
+        dropout: float = 0.0,
+    ) -> None:
+        super().__init__()
+        self.own_state = own_state
+        self.other_state_action = other_state_action
+        self._add_pool(width, num_heads, hidden_dim, depth=depth, dropout=dropout)
+
+    def forward(self, features: Tensor, action: Tensor, agent_mask: Tensor | None = None) -> Tensor:
+        """Baselines [..., K, 1] from features [..., K, F] and actions [..., K, A]."""
+        num_agents = features.shape[-2]
+        own = self.own_state(features)
+        others = self.other_state_action(torch.cat([features, action.to(features.dtype)], -1))
+        is_self = torch.eye(num_agents, dtype=torch.bool, device=features.device)
+        # tokens[..., i, j] = g(x_i) if i == j else f(x_j, a_j)
+        tokens = torch.where(is_self[..., None], own.unsqueeze(-2), others.unsqueeze(-3))
+        key_mask = None if agent_mask is None else agent_mask.unsqueeze(-2) | is_self
+        return self._pool(tokens, key_mask)
+
+
+class CentralValueHead(AttentionValue):
+    """V(s) on the trunk's agent embeddings: residual self-attention, masked mean, MLP -> 1.
 
     Args:
         config: network sizes.
@@ -28,28 +181,17 @@ class CentralValueHead(nn.Module):
     """
 
     def __init__(self, config: TerraShiftModelConfig) -> None:
-        super().__init__()
-        self.attention = ResidualSelfAttention(
-            config.embed_dim, config.num_heads, dropout=config.dropout
+        super().__init__(
+            nn.Identity(),
+            width=config.embed_dim,
+            num_heads=config.num_heads,
+            hidden_dim=config.critic_hidden_dim,
+            dropout=config.dropout,
         )
-        self.mlp = feed_forward(
-            config.embed_dim, config.critic_hidden_dim, 1, dropout=config.dropout
-        )
-
-    def forward(self, embedding: Tensor, agent_mask: Tensor | None = None) -> Tensor:
-        """Value [..., 1] of agent embeddings [..., K, d] (mask [..., K], True = present)."""
-        attended = self.attention(embedding, agent_mask)
-        # float32 out, also under bf16 autocast: returns and value losses need the precision
-        return self.mlp(masked_mean(attended, agent_mask)).float()
 
 
-class CounterfactualBaselineHead(nn.Module):
-    """b_i: value of the state with agent i's own action marginalised out, for every agent i.
-
-    For agent i the set is ``{g(e_i)} + {f(e_j, a_j) : j != i, j present}`` with
-    g: d -> d and f: (d + A) -> d; residual self-attention, masked mean, MLP -> 1. All agents are
-    computed at once: a [B, K, K, d] tensor whose row i holds f(e_j, a_j) everywhere except
-    g(e_i) at position i, with a key mask that drops absent agents.
+class CounterfactualBaselineHead(AttentionBaseline):
+    """b_i on the trunk's agent embeddings e: g and f are linear maps d -> d and (d + A) -> d.
 
     Args:
         config: network sizes.
@@ -62,23 +204,199 @@ class CounterfactualBaselineHead(nn.Module):
     """
 
     def __init__(self, config: TerraShiftModelConfig, *, action_dim: int) -> None:
-        super().__init__()
         dim = config.embed_dim
-        self.own_state = nn.Linear(dim, dim)
-        self.other_state_action = nn.Linear(dim + action_dim, dim)
-        self.attention = ResidualSelfAttention(dim, config.num_heads, dropout=config.dropout)
-        self.mlp = feed_forward(dim, config.critic_hidden_dim, 1, dropout=config.dropout)
+        super().__init__(
+            nn.Linear(dim, dim),
+            nn.Linear(dim + action_dim, dim),
+            width=dim,
+            num_heads=config.num_heads,
+            hidden_dim=config.critic_hidden_dim,
+            dropout=config.dropout,
+        )
 
-    def forward(
-        self, embedding: Tensor, action: Tensor, agent_mask: Tensor | None = None
-    ) -> Tensor:
-        """Baselines [..., K, 1] from embeddings [..., K, d] and actions [..., K, A]."""
-        num_agents = embedding.shape[-2]
-        own = self.own_state(embedding)
-        others = self.other_state_action(torch.cat([embedding, action.to(embedding.dtype)], -1))
-        is_self = torch.eye(num_agents, dtype=torch.bool, device=embedding.device)
-        # tokens[..., i, j] = g(e_i) if i == j else f(e_j, a_j)
-        tokens = torch.where(is_self[..., None], own.unsqueeze(-2), others.unsqueeze(-3))
-        key_mask = None if agent_mask is None else agent_mask.unsqueeze(-2) | is_self
-        attended = self.attention(tokens, key_mask)
-        return self.mlp(masked_mean(attended, key_mask)).float()  # float32, as the value
+
+class CentralValue(TensorDictModule):
+    """V(s) for any team with flat per-agent observations, as a TensorDict module.
+
+    Reads ``(group, "observation")`` [*B, K, O] and, if there, ``(group, "mask")`` [*B, K]
+    (True where the agent is present; absent means all present); writes ``"state_value"``
+    [*B, 1], the keys :class:`~terrashift_rl.objectives.MAPOCALoss` reads by default (VMAS's
+    too). Each agent's observation goes through an MLP, then :class:`AttentionValue` pools the
+    team: no fixed number of agents, no order among them.
+
+    Args:
+        observation_dim: O, features per agent.
+
+    Keyword Args:
+        width: width of every hidden layer and of the attention.
+        depth: hidden layers of the observation encoder and of the MLP after pooling.
+        num_heads: attention heads; divides ``width``.
+        group: the agents' group.
+        observation_key: defaults to ``(group, "observation")``.
+        mask_key: defaults to ``(group, "mask")``.
+        out_key: where V is written.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> value = CentralValue(observation_dim=5, width=16, depth=1, num_heads=2)
+        >>> data = TensorDict({("agents", "observation"): torch.randn(4, 3, 5)}, [4])
+        >>> value(data)["state_value"].shape
+        torch.Size([4, 1])
+    """
+
+    def __init__(
+        self,
+        observation_dim: int,
+        *,
+        width: int = 64,
+        depth: int = 2,
+        num_heads: int = 4,
+        group: str = "agents",
+        observation_key: NestedKey | None = None,
+        mask_key: NestedKey | None = None,
+        out_key: NestedKey = "state_value",
+    ) -> None:
+        network = AttentionValue(
+            _mlp(observation_dim, width, width, depth=depth, dropout=0.0),
+            width=width,
+            num_heads=num_heads,
+            hidden_dim=width,
+            depth=depth,
+        )
+        observation_key = (group, "observation") if observation_key is None else observation_key
+        mask_key = (group, "mask") if mask_key is None else mask_key
+        super().__init__(network, in_keys=[observation_key, mask_key], out_keys=[out_key])
+        self.observation_dim = observation_dim
+
+    def forward(self, tensordict: TensorDictBase, **kwargs) -> TensorDictBase:
+        observation_key, mask_key = self.in_keys
+        inputs = _agent_inputs(
+            tensordict, {observation_key: self.observation_dim}, mask_key, type(self).__name__
+        )
+        # outputs go to the caller's tensordict, also where the inputs were reshaped in a copy
+        return super().forward(inputs, **{"tensordict_out": tensordict, **kwargs})
+
+
+class CounterfactualBaseline(TensorDictModule):
+    """Counterfactual baselines b_i for any team with flat per-agent observations.
+
+    Reads ``(group, "observation")`` [*B, K, O], ``(group, "action")`` [*B, K, A] (or integer
+    actions [*B, K] of a categorical spec, one-hot encoded over ``action_dim`` classes) and, if
+    there, ``(group, "mask")`` [*B, K]; writes ``(group, "baseline")`` [*B, K, 1]. Agent i's
+    observation goes through an MLP g, every other agent's observation and action through an MLP
+    f, and :class:`AttentionBaseline` attends over ``{g(o_i)} + {f(o_j, a_j) : j != i}``:
+    ML-Agents' POCA baseline, for any number of agents.
+
+    Args:
+        observation_dim: O, features per agent.
+        action_dim: A, action dims per agent (classes for integer actions).
+
+    Keyword Args:
+        width: width of every hidden layer and of the attention.
+        depth: hidden layers of the two encoders and of the MLP after pooling.
+        num_heads: attention heads; divides ``width``.
+        group: the agents' group.
+        observation_key: defaults to ``(group, "observation")``.
+        action_key: defaults to ``(group, "action")``.
+        mask_key: defaults to ``(group, "mask")``.
+        out_key: defaults to ``(group, "baseline")``.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> baseline = CounterfactualBaseline(5, 2, width=16, depth=1, num_heads=2)
+        >>> data = TensorDict({
+        ...     ("agents", "observation"): torch.randn(4, 3, 5),
+        ...     ("agents", "action"): torch.randn(4, 3, 2)}, [4])
+        >>> baseline(data)["agents", "baseline"].shape
+        torch.Size([4, 3, 1])
+    """
+
+    def __init__(
+        self,
+        observation_dim: int,
+        action_dim: int,
+        *,
+        width: int = 64,
+        depth: int = 2,
+        num_heads: int = 4,
+        group: str = "agents",
+        observation_key: NestedKey | None = None,
+        action_key: NestedKey | None = None,
+        mask_key: NestedKey | None = None,
+        out_key: NestedKey | None = None,
+    ) -> None:
+        network = AttentionBaseline(
+            _mlp(observation_dim, width, width, depth=depth, dropout=0.0),
+            _mlp(observation_dim + action_dim, width, width, depth=depth, dropout=0.0),
+            width=width,
+            num_heads=num_heads,
+            hidden_dim=width,
+            depth=depth,
+        )
+        super().__init__(
+            network,
+            in_keys=[
+                (group, "observation") if observation_key is None else observation_key,
+                (group, "action") if action_key is None else action_key,
+                (group, "mask") if mask_key is None else mask_key,
+            ],
+            out_keys=[(group, "baseline") if out_key is None else out_key],
+        )
+        self.observation_dim = observation_dim
+        self.action_dim = action_dim
+
+    def forward(self, tensordict: TensorDictBase, **kwargs) -> TensorDictBase:
+        observation_key, action_key, mask_key = self.in_keys
+        inputs = _agent_inputs(
+            tensordict,
+            {observation_key: self.observation_dim, action_key: self.action_dim},
+            mask_key,
+            type(self).__name__,
+            categorical_key=action_key,
+        )
+        return super().forward(inputs, **{"tensordict_out": tensordict, **kwargs})
+
+
+def _agent_inputs(
+    tensordict: TensorDictBase,
+    features: dict[NestedKey, int],
+    mask_key: NestedKey,
+    network: str,
+    *,
+    categorical_key: NestedKey | None = None,
+) -> TensorDictBase:
+    """The inputs of a generic critic, checked; an error names the key of any that is missing or
+    mis-shaped.
+
+    Every key of ``features`` must hold [*B, K, F], F as given, one [*B, K] for all; integer
+    values [*B, K] at ``categorical_key`` are one-hot encoded over its F classes. The mask, when
+    there, is [*B, K] or [*B, K, 1]. Returns ``tensordict`` itself, or a shallow copy holding
+    the one-hot actions and the mask as bool [*B, K].
+    """
+    inputs = tensordict
+    agent_shape = None
+    for key, dim in features.items():
+        value = tensordict.get(key, None)
+        if value is None:
+            raise KeyError(f"{network} reads {key!r}, [*B, K, {dim}]; the input has no such key.")
+        if agent_shape is None:
+            agent_shape = value.shape[:-1]
+        if key == categorical_key and not value.is_floating_point() and value.shape == agent_shape:
+            value = nn.functional.one_hot(value.long(), dim).float()
+            inputs = inputs.copy().set(key, value)
+        if value.ndim < 2 or value.shape[-1] != dim or value.shape[:-1] != agent_shape:
+            raise ValueError(
+                f"{network} reads {key!r} as [*B, K, {dim}] with [*B, K] = {list(agent_shape)} "
+                f"for every input, got {list(value.shape)}."
+            )
+    mask = tensordict.get(mask_key, None)
+    if mask is None:
+        return inputs
+    if mask.shape not in (agent_shape, (*agent_shape, 1)):
+        raise ValueError(
+            f"{network} reads the agent mask {mask_key!r} as [*B, K] = {list(agent_shape)} "
+            f"(or [*B, K, 1]), got {list(mask.shape)}."
+        )
+    if mask.shape != agent_shape or mask.dtype != torch.bool:
+        inputs = inputs.copy().set(mask_key, mask.reshape(agent_shape).bool())
+    return inputs

@@ -1,11 +1,22 @@
-"""Centralised value and counterfactual baseline heads: shapes, masks, permutations."""
+"""Centralised value and counterfactual baselines: the TerraShift heads and the generic critics.
+
+Shapes, masks, permutations over agents, and the errors that name a missing or mis-shaped key.
+"""
 
 from __future__ import annotations
 
 import pytest
 import torch
+from tensordict import TensorDict
 
-from terrashift_rl.modules import CentralValueHead, CounterfactualBaselineHead
+from terrashift_rl.modules import (
+    AttentionBaseline,
+    AttentionValue,
+    CentralValue,
+    CentralValueHead,
+    CounterfactualBaseline,
+    CounterfactualBaselineHead,
+)
 from terrashift_rl.modules.layers import masked_mean
 
 ATOL = 1e-5
@@ -94,3 +105,159 @@ def test_batched_baseline_equals_one_set_per_agent(baseline_head):
         tokens = torch.cat([own[:, agent : agent + 1], others[:, members]], dim=1)
         expected = baseline_head.mlp(masked_mean(baseline_head.attention(tokens), None))
         torch.testing.assert_close(batched[:, agent], expected, atol=ATOL, rtol=1e-4)
+
+
+# --- the generic critics: flat per-agent observations, plain sizes ----------------------------
+
+OBS_DIM, ACTION_DIM = 5, 2
+
+
+@pytest.fixture
+def central_value():
+    torch.manual_seed(0)
+    return CentralValue(OBS_DIM, width=16, depth=2, num_heads=2).eval()
+
+
+@pytest.fixture
+def counterfactual_baseline():
+    torch.manual_seed(0)
+    return CounterfactualBaseline(OBS_DIM, ACTION_DIM, width=16, depth=2, num_heads=2).eval()
+
+
+def team(batch: tuple[int, ...] = (4,), num_agents: int = 5, *, seed: int = 0) -> TensorDict:
+    """Observations and actions of a team in VMAS's layout: the group "agents" [*B, K]."""
+    generator = torch.Generator().manual_seed(seed)
+    agents = TensorDict(
+        {
+            "observation": torch.randn(*batch, num_agents, OBS_DIM, generator=generator),
+            "action": torch.randn(*batch, num_agents, ACTION_DIM, generator=generator),
+        },
+        [*batch, num_agents],
+    )
+    return TensorDict({"agents": agents}, list(batch))
+
+
+@pytest.mark.parametrize("num_agents", [1, 3, 7])
+@pytest.mark.parametrize("batch", [(4,), (2, 3)])
+def test_generic_critics_write_their_keys_with_the_loss_shapes(
+    central_value, counterfactual_baseline, num_agents, batch
+):
+    data = team(batch, num_agents)
+    # the same weights take any number of agents and write into the caller's tensordict
+    assert central_value(data) is data
+    counterfactual_baseline(data)
+    assert data["state_value"].shape == (*batch, 1)
+    assert data["agents", "baseline"].shape == (*batch, num_agents, 1)
+
+
+def test_generic_critics_are_permutation_invariant_and_equivariant_over_agents(
+    central_value, counterfactual_baseline
+):
+    data = team()
+    data["agents", "mask"] = torch.tensor([True, False, True, True, True]).expand(4, 5)
+    permutation = torch.tensor([3, 0, 4, 1, 2])
+    permuted = data.clone()
+    permuted["agents"] = data["agents"][:, permutation]
+    torch.testing.assert_close(
+        central_value(permuted)["state_value"],
+        central_value(data)["state_value"],
+        atol=ATOL,
+        rtol=1e-4,
+    )
+    torch.testing.assert_close(
+        counterfactual_baseline(permuted)["agents", "baseline"],
+        counterfactual_baseline(data)["agents", "baseline"][:, permutation],
+        atol=ATOL,
+        rtol=1e-4,
+    )
+
+
+def test_generic_critics_ignore_absent_agents(central_value, counterfactual_baseline):
+    data = team()
+    data["agents", "mask"] = torch.tensor([True, True, False, True, False]).expand(4, 5)
+    value = central_value(data.clone())["state_value"]
+    baseline = counterfactual_baseline(data.clone())["agents", "baseline"]
+    garbage = team(seed=1)
+    for key in ("observation", "action"):
+        data["agents", key][:, [2, 4]] = 10 * garbage["agents", key][:, [2, 4]]
+    torch.testing.assert_close(central_value(data)["state_value"], value)
+    present = [0, 1, 3]
+    torch.testing.assert_close(
+        counterfactual_baseline(data)["agents", "baseline"][:, present], baseline[:, present]
+    )
+    # a mask [*B, K, 1], as the loss also accepts, reads the same
+    data["agents", "mask"] = data["agents", "mask"].unsqueeze(-1).float()
+    torch.testing.assert_close(central_value(data)["state_value"], value)
+
+
+def test_generic_baseline_of_an_agent_ignores_its_own_action_only(counterfactual_baseline):
+    data = team()
+    baseline = counterfactual_baseline(data.clone())["agents", "baseline"]
+    data["agents", "action"][:, 1] += 1.0
+    changed = counterfactual_baseline(data)["agents", "baseline"]
+    torch.testing.assert_close(changed[:, 1], baseline[:, 1])
+    others = [0, 2, 3, 4]
+    assert not torch.allclose(changed[:, others], baseline[:, others], atol=1e-4)
+
+
+def test_generic_baseline_one_hot_encodes_integer_actions():
+    torch.manual_seed(0)
+    baseline = CounterfactualBaseline(OBS_DIM, 3, width=8, depth=1, num_heads=2)
+    data = team()
+    action = torch.randint(3, (4, 5))
+    data["agents", "action"] = action
+    one_hot = data.clone()
+    one_hot["agents", "action"] = torch.nn.functional.one_hot(action, 3).float()
+    torch.testing.assert_close(
+        baseline(data)["agents", "baseline"], baseline(one_hot)["agents", "baseline"]
+    )
+    assert data["agents", "action"].dtype == torch.int64  # the caller's action is left as it was
+
+
+def test_generic_critics_keys_and_sizes_are_configurable():
+    value = CentralValue(3, group="team", out_key=("team", "value"), width=8, num_heads=1)
+    baseline = CounterfactualBaseline(3, 2, group="team", action_key=("team", "move"), width=8)
+    assert value.in_keys == [("team", "observation"), ("team", "mask")]
+    assert value.out_keys == [("team", "value")]
+    assert baseline.in_keys == [("team", "observation"), ("team", "move"), ("team", "mask")]
+    assert baseline.out_keys == [("team", "baseline")]
+    hidden = [layer for layer in value.module.mlp if isinstance(layer, torch.nn.Linear)]
+    assert [layer.out_features for layer in hidden] == [8, 8, 1]  # depth 2 hidden layers, then 1
+
+
+@pytest.mark.parametrize(
+    ("change", "error", "message"),
+    [
+        (lambda data: data["agents"].del_("observation"), KeyError, "'observation'.*5"),
+        (
+            lambda data: data.set(("agents", "observation"), torch.randn(4, 5, 6)),
+            ValueError,
+            r"'observation'.*\[\*B, K, 5\].*\[4, 5, 6\]",
+        ),
+        (lambda data: data["agents"].del_("action"), KeyError, r"'action'.*\[\*B, K, 2\]"),
+        (
+            lambda data: data.set(("agents", "action"), torch.randn(4, 5, 3)),
+            ValueError,
+            r"'action'.*\[\*B, K, 2\].*\[4, 5, 3\]",
+        ),
+        (
+            lambda data: data.set(("agents", "mask"), torch.ones(4, 5, 2, dtype=torch.bool)),
+            ValueError,
+            r"'mask'.*\[\*B, K\] = \[4, 5\].*\[4, 5, 2\]",
+        ),
+    ],
+)
+def test_generic_critics_name_a_missing_or_mis_shaped_input(
+    counterfactual_baseline, change, error, message
+):
+    data = team()
+    change(data)
+    with pytest.raises(error, match=message):
+        counterfactual_baseline(data)
+
+
+def test_terrashift_heads_are_the_generic_networks_on_embeddings(value_head, baseline_head):
+    assert isinstance(value_head, AttentionValue) and isinstance(baseline_head, AttentionBaseline)
+    embedding, _ = agent_inputs()
+    # the value head's encoder is the identity: the trunk already embeds every agent
+    torch.testing.assert_close(value_head.encoder(embedding), embedding)
