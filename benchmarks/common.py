@@ -34,10 +34,17 @@ def write_results(path: Path, payload: dict) -> None:
     partial.replace(path)
 
 
-def read_series(folder: Path, metric: str) -> tuple[list[float], list[float]]:
-    """Steps and values of one metric of a torchrl CSVLogger ``scalars`` folder (``<metric>.csv``
-    of ``step,value`` rows); empty lists if the run did not log it."""
-    path = folder / f"{metric}.csv"
+def read_series(run: Path, metric: str) -> tuple[list[float], list[float]]:
+    """Steps and values of one metric of a run: a torchrl CSVLogger ``scalars`` folder
+    (``<metric>.csv`` of ``step,value`` rows) or a run summary written by
+    ``compact_logs.py``; empty lists if the run did not log it."""
+    if run.suffix == ".json":
+        summary = read_summary(run)
+        if metric in summary["series"]:
+            return list(summary["steps"]), list(summary["series"][metric])
+        points = summary["sparse"].get(metric, [])
+        return [step for step, _ in points], [value for _, value in points]
+    path = run / f"{metric}.csv"
     if not path.is_file():
         return [], []
     with path.open() as file:
@@ -45,14 +52,48 @@ def read_series(folder: Path, metric: str) -> tuple[list[float], list[float]]:
     return [step for step, _ in rows], [value for _, value in rows]
 
 
-def run_label(folder: Path) -> str:
-    """A run's name in tables and legends. A recipe's own log folder,
-    ``<run dir>/logs/<run name>/scalars``, is named by its run directory and the command line's
-    overrides that Hydra recorded there (so the runs of a ``-m`` sweep tell apart); any other
-    folder, such as a copy under ``benchmarks/results/training/``, by its own name."""
-    if folder.name != "scalars":
-        return folder.name
-    run_dir = folder.resolve().parents[2]
+def read_summary(path: Path) -> dict:
+    """A run summary written by ``compact_logs.py``."""
+    if path not in _SUMMARIES:
+        _SUMMARIES[path] = json.loads(path.read_text())
+    return _SUMMARIES[path]
+
+
+_SUMMARIES: dict[Path, dict] = {}
+
+
+def read_evaluations(run: Path) -> dict[str, dict]:
+    """A run's evaluation files (``recipes/evaluate.py``'s output), keyed by their suffix
+    (:data:`EVALUATION_SUFFIXES`): for a ``scalars`` folder the files ``<folder>_<suffix>.json``
+    beside it, for a summary the evaluations it holds."""
+    if run.suffix == ".json":
+        return read_summary(run)["evaluations"]
+    files = {suffix: run.with_name(f"{run.name}_{suffix}.json") for suffix in EVALUATION_SUFFIXES}
+    return {
+        suffix: json.loads(path.read_text()) for suffix, path in files.items() if path.is_file()
+    }
+
+
+EVALUATION_SUFFIXES = (
+    "evaluation",
+    "training_mode_evaluation",
+    "best_evaluation",
+    "best_training_mode_evaluation",
+    "snapshots_evaluation",
+)
+"""How the evaluation files of a run's log folder are named: ``<folder>_<suffix>.json``."""
+
+
+def run_label(run: Path) -> str:
+    """A run's name in tables and legends. A summary carries its own; a recipe's own log
+    folder, ``<run dir>/logs/<run name>/scalars``, is named by its run directory and the
+    command line's overrides that Hydra recorded there (so the runs of a ``-m`` sweep tell
+    apart); any other folder by its own name."""
+    if run.suffix == ".json":
+        return read_summary(run)["run"]
+    if run.name != "scalars":
+        return run.name
+    run_dir = run.resolve().parents[2]
     overrides = run_dir / ".hydra" / "overrides.yaml"
     if not overrides.is_file():
         return run_dir.name

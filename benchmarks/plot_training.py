@@ -1,13 +1,14 @@
-"""Plots learning curves from the CSV logs of training runs (``logger=csv``).
+"""Plots learning curves of training runs from their summaries or CSV logs (``logger=csv``).
 
-    python benchmarks/plot_training.py benchmarks/results/training/h100_run1_8min \
-        benchmarks/results/training/h100_run2_6min --out docs/figures/pretrain_h100.png
+    python benchmarks/plot_training.py benchmarks/results/training/h100_run46_10min.json \
+        benchmarks/results/training/h100_run47_10min.json --out docs/figures/teacher.png
 
-Each argument is a ``scalars`` folder written by torchrl's CSVLogger (one ``<metric>.csv`` of
-``step,value`` rows per metric). Draws one panel per metric against env-steps (by default reward
-per decision, success rate and throughput), with an optional reference line in the reward panel.
-A recipe's own folder (``<run dir>/logs/<run name>/scalars``) is labelled by its run folder and
-the overrides Hydra recorded there, any other folder by its name.
+Each argument is a run summary (``compact_logs.py``'s JSON) or a ``scalars`` folder written by
+torchrl's CSVLogger (one ``<metric>.csv`` of ``step,value`` rows per metric). Draws one panel
+per metric against env-steps (by default reward per decision, success rate and throughput),
+with an optional reference line in the reward panel. A summary is labelled by its name, a
+recipe's own folder (``<run dir>/logs/<run name>/scalars``) by its run folder and the overrides
+Hydra recorded there, any other folder by its name.
 
     python benchmarks/plot_training.py <runs> --out curves.png \
         --metrics reward_per_decision out_of_bounds_per_episode entropy kl_approx
@@ -43,7 +44,7 @@ DEFAULT_METRICS = ("reward_per_decision", "success_rate", "env_steps_per_s")
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("runs", nargs="+", type=Path, help="CSVLogger scalars folders")
+    parser.add_argument("runs", nargs="+", type=Path, help="run summaries or scalars folders")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument(
         "--reference",
@@ -66,7 +67,7 @@ def main() -> None:
         for run in args.runs:
             steps, values = read_series(run, metric)
             if not steps:
-                parser.error(f"{run} has no {metric}.csv")
+                parser.error(f"{run} has no {metric}")
             ax.plot(
                 [s / 1e6 for s in steps],
                 values,

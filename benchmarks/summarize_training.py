@@ -1,32 +1,34 @@
-"""Prints a Markdown table of training runs from their CSV logs and evaluation JSON.
+"""Prints a Markdown table of training runs from their logs and evaluation JSON.
 
-    python benchmarks/summarize_training.py benchmarks/results/training/h200_x4_6.5min/*/
+    python benchmarks/summarize_training.py benchmarks/results/training/h100_run4[1-7]*.json
 
-Each argument is a ``scalars`` folder written by torchrl's CSVLogger (``logger=csv``); a
-recipe's own folder (``<run dir>/logs/<run name>/scalars``) is labelled by its run folder and
-the overrides Hydra recorded there, any other folder by its name. Files
-``<folder>_evaluation.json`` and ``<folder>_training_mode_evaluation.json`` beside it
-(``recipes/evaluate.py``'s output, the second with ``respawn=true``) add the evaluation
-columns. The numbers are those of the tables in ``docs/results.md``: env-steps and iterations
-logged, the median env-steps/s per iteration after the first, the means over the last
+Each argument is a run summary (``compact_logs.py``'s JSON, which holds the run's evaluations)
+or a ``scalars`` folder written by torchrl's CSVLogger (``logger=csv``; a recipe's own folder,
+``<run dir>/logs/<run name>/scalars``, is labelled by its run folder and the overrides Hydra
+recorded there, and the files ``<folder>_evaluation.json`` and
+``<folder>_training_mode_evaluation.json`` beside it, ``recipes/evaluate.py``'s output, the
+second with ``respawn=true``, add the evaluation columns). The columns: env-steps and
+iterations logged, the median env-steps/s per iteration after the first, the means over the last
 ``--last`` iterations of the reward per decision and of goals and spheres lost per episode, the
 take-off (the first iteration where the mean reward of the last ``--last`` crosses zero: its
 env-steps and the minutes of iterations up to it), the iterations whose training success rate,
 averaged the same way, is 0.9 or more (the highest such mean when none is), the entropy at the
 first and last iteration, and per evaluated policy the success rate, goals and out-of-bounds
-per episode and reward per decision.
+per episode and reward per decision. A summary keeps its last iterations one by one, so the
+end-of-run means are exact; before them its curves are bin means, so take-off and the success
+count are read at the bins' resolution there.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
+import math
 import statistics
 from pathlib import Path
 
-from common import read_series, run_label
+from common import read_evaluations, read_series, read_summary, run_label
 
-EVALUATIONS = ("_evaluation.json", "_training_mode_evaluation.json")
+EVALUATIONS = ("evaluation", "training_mode_evaluation")
 
 
 def rolling_means(values: list[float], window: int) -> list[float]:
@@ -48,8 +50,9 @@ def take_off(steps: list[float], reward: list[float], speed: list[float], window
 
 
 def successful_iterations(success: list[float], window: int) -> str:
-    """Iterations whose ``window``-iteration mean success rate is 0.9 or more."""
-    means = rolling_means(success, window)
+    """Iterations whose ``window``-iteration mean success rate is 0.9 or more (windows with an
+    iteration that resolved no sphere, whose success rate is NaN, do not count)."""
+    means = [mean for mean in rolling_means(success, window) if not math.isnan(mean)]
     if not means:
         return ""
     count = sum(mean >= 0.9 for mean in means)
@@ -60,7 +63,7 @@ def row(folder: Path, last: int) -> list[str]:
     """The table cells of one run."""
     steps, reward = read_series(folder, "reward_per_decision")
     if not steps:
-        raise SystemExit(f"{folder} has no reward_per_decision.csv: not a CSVLogger scalars folder")
+        raise SystemExit(f"{folder} has no reward_per_decision: not a training run's log")
     speed = read_series(folder, "env_steps_per_s")[1]
     entropy = read_series(folder, "entropy")[1]
     goals = read_series(folder, "goals_per_episode")[1][-last:]
@@ -68,7 +71,7 @@ def row(folder: Path, last: int) -> list[str]:
     cells = [
         run_label(folder),
         f"{steps[-1] / 1e6:.2f} M",
-        f"{len(steps)}",
+        f"{read_summary(folder)['iterations'] if folder.suffix == '.json' else len(steps)}",
         f"{statistics.median(speed[1:]):,.0f}" if speed[1:] else "",
         f"{statistics.mean(reward[-last:]):+.4f}",
         f"{statistics.mean(goals):.2f}, {statistics.mean(lost):.2f}" if goals and lost else "",
@@ -76,9 +79,9 @@ def row(folder: Path, last: int) -> list[str]:
         successful_iterations(read_series(folder, "success_rate")[1], last),
         f"{entropy[0]:.2f} → {entropy[-1]:.2f}" if entropy else "",
     ]
+    evaluations = read_evaluations(folder)
     for suffix in EVALUATIONS:
-        evaluation = folder.with_name(f"{folder.name}{suffix}")
-        scores = json.loads(evaluation.read_text()) if evaluation.is_file() else {}
+        scores = evaluations.get(suffix, {})
         for policy in ("stochastic", "deterministic"):
             m = scores.get(policy)
             cells.append(
@@ -93,7 +96,7 @@ def row(folder: Path, last: int) -> list[str]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("runs", nargs="+", type=Path, help="CSVLogger scalars folders")
+    parser.add_argument("runs", nargs="+", type=Path, help="run summaries or scalars folders")
     parser.add_argument("--last", type=int, default=8, help="iterations averaged at the end")
     args = parser.parse_args()
     header = [

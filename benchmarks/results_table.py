@@ -1,0 +1,88 @@
+"""Prints the summary table of docs/results.md: each recipe's evaluation over its seeds.
+
+    python benchmarks/results_table.py \
+        "teacher held=benchmarks/results/training/h100_run46_10min.json,...run47_10min.json" \
+        --baselines benchmarks/results/training/baselines_evaluation_seed1.json
+
+Each argument is ``label=summary,summary,...`` (split at the last ``=``): the run summaries
+(``compact_logs.py``) of one recipe's seeds. A row gives the mean ± standard deviation over
+them of the evaluation-mode metrics (``recipes/evaluate.py``'s ``evaluation`` file, or else the
+last periodic evaluation the run logged, ``eval_*``), the policy's Beta mean first and its
+samples in parentheses where evaluated, with the env-steps and the training reward per decision
+over the last 8 iterations. ``--baselines`` adds the random, zero and heuristic rows of an
+``evaluate_baselines`` file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+from pathlib import Path
+
+from common import read_evaluations, read_series
+
+METRICS = (
+    ("goal_fraction", "{:.3f}"),
+    ("success_rate", "{:.3f}"),
+    ("out_of_bounds_per_episode", "{:.2f}"),
+    ("mean_episode_length", "{:.0f}"),
+    ("mean_reward_per_decision", "{:+.3f}"),
+)
+
+
+def spread(values: list[float], form: str) -> str:
+    if len(values) == 1:
+        return form.format(values[0])
+    deviation = form.replace("+", "").format(statistics.stdev(values))
+    return f"{form.format(statistics.mean(values))} ± {deviation}"
+
+
+def scores(run: Path) -> dict[str, dict[str, float]]:
+    """Evaluation-mode metrics of a run per policy kind (``deterministic``, ``stochastic``)."""
+    evaluation = read_evaluations(run).get("evaluation")
+    if evaluation is not None:
+        return {kind: evaluation[kind] for kind in ("deterministic", "stochastic")}
+    logged = {name: read_series(run, f"eval_{name}")[1] for name, _ in METRICS}
+    if not all(logged.values()):
+        raise SystemExit(f"{run} holds no evaluation-mode score")
+    return {"deterministic": {name: values[-1] for name, values in logged.items()}}
+
+
+def row(label: str, runs: list[Path]) -> list[str]:
+    per_run = [scores(run) for run in runs]
+    cells = [label, str(len(runs))]
+    steps = [read_series(run, "reward_per_decision")[0][-1] / 1e6 for run in runs]
+    cells.append(f"{statistics.mean(steps):.1f} M")
+    for name, form in METRICS:
+        cell = spread([s["deterministic"][name] for s in per_run], form)
+        if all("stochastic" in s for s in per_run):
+            cell += f" ({spread([s['stochastic'][name] for s in per_run], form)})"
+        cells.append(cell)
+    training = [statistics.mean(read_series(run, "reward_per_decision")[1][-8:]) for run in runs]
+    cells.append(spread(training, "{:+.3f}"))
+    return cells
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("recipes", nargs="+", help="label=summary,summary,...")
+    parser.add_argument("--baselines", type=Path, help="an evaluate_baselines JSON file")
+    args = parser.parse_args()
+    header = ["recipe", "seeds", "env-steps", *(name for name, _ in METRICS)]
+    header.append("training reward / decision, last 8")
+    print("| " + " | ".join(header) + " |")
+    print("|" + "---|" * len(header))
+    for recipe in args.recipes:
+        label, _, paths = recipe.rpartition("=")  # labels may hold overrides
+        print("| " + " | ".join(row(label, [Path(p) for p in paths.split(",")])) + " |")
+    if args.baselines:
+        results = json.loads(args.baselines.read_text())["results"]
+        for name, metrics in results.items():
+            cells = [f"{name} (baseline)", "", ""]
+            cells += [form.format(metrics[metric]) for metric, form in METRICS] + [""]
+            print("| " + " | ".join(cells) + " |")
+
+
+if __name__ == "__main__":
+    main()
