@@ -148,41 +148,75 @@ class TrainConfig:
     repeat without it."""
 
     def validate(self) -> None:
-        """Raises ``ValueError`` for impossible combinations, saying what to change."""
-        for name in ("num_envs", "steps_per_iteration", "epochs", "minibatches"):
+        """Raises ``ValueError`` naming the first setting of the wrong type or outside its
+        allowed range, or an impossible combination, saying what to change."""
+        for name in (
+            "num_envs",
+            "steps_per_iteration",
+            "epochs",
+            "minibatches",
+            "schedule_iterations",
+            "teacher_iterations",
+        ):
+            _check_integer(name, getattr(self, name), minimum=1)
+        _check_integer("critic_warmup_iterations", self.critic_warmup_iterations, minimum=0)
+        for name in (
+            "lr_trunk_policy",
+            "lr_value_baseline",
+            "lr_end_factor",
+            "desired_kl",
+            "lr_min",
+            "lr_max",
+            "value_clip_start",
+            "value_clip_end",
+            "max_grad_norm_start",
+            "max_grad_norm_end",
+        ):
+            _check_number(name, getattr(self, name), low=0.0, low_open=True)
+        for name in (
+            "weight_decay",
+            "entropy_coeff_start",
+            "entropy_coeff_end",
+            "teacher_coeff",
+            "teacher_coeff_end",
+            "value_coeff",
+            "baseline_coeff",
+        ):
+            _check_number(name, getattr(self, name), low=0.0)
+        for name in ("clip_epsilon_start", "clip_epsilon_end"):
+            _check_number(
+                name, getattr(self, name), low=0.0, high=1.0, low_open=True, high_open=True
+            )
+        _check_number("gamma", self.gamma, low=0.0, high=1.0, low_open=True)
+        _check_number("lmbda", self.lmbda, low=0.0, high=1.0)
+        _check_number("value_norm_decay", self.value_norm_decay, low=0.0, high=1.0, high_open=True)
+        for name in (
+            "normalize_value",
+            "bf16",
+            "tf32",
+            "stagger_episodes",
+            "compile",
+            "cuda_graphs",
+            "deterministic",
+        ):
             value = getattr(self, name)
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(f"train.{name} must be a positive integer, got {value!r}")
+            if not isinstance(value, bool):
+                raise ValueError(f"train.{name} must be true or false, got {value!r}")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(
+                f"train.lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}"
+            )
         if self.minibatches > self.num_envs:
             raise ValueError(
                 f"train.minibatches ({self.minibatches}) exceeds train.num_envs "
                 f"({self.num_envs}): a mini-batch holds whole environment sequences, so use at "
                 f"most {self.num_envs} mini-batches or more environments"
             )
-        if not 0.0 < self.gamma <= 1.0 or not 0.0 <= self.lmbda <= 1.0:
-            raise ValueError("train.gamma must be in (0, 1] and train.lmbda in [0, 1]")
-        if not self.teacher_coeff >= 0.0:
-            raise ValueError(f"train.teacher_coeff must be >= 0, got {self.teacher_coeff}")
-        if not self.teacher_coeff_end >= 0.0:
-            raise ValueError(f"train.teacher_coeff_end must be >= 0, got {self.teacher_coeff_end}")
         if self.teacher_coeff_end and not self.teacher_coeff:
             raise ValueError(
                 f"train.teacher_coeff_end is {self.teacher_coeff_end} but train.teacher_coeff "
                 f"is 0 (no teacher): set train.teacher_coeff > 0 to train with a teacher"
             )
-        if not isinstance(self.teacher_iterations, int) or self.teacher_iterations < 1:
-            raise ValueError(
-                f"train.teacher_iterations must be a positive integer, got "
-                f"{self.teacher_iterations!r}"
-            )
-        if self.lr_schedule not in LR_SCHEDULES:
-            raise ValueError(
-                f"train.lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}"
-            )
-        for name in ("lr_trunk_policy", "lr_value_baseline", "desired_kl", "lr_min", "lr_max"):
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise ValueError(f"train.{name} must be a finite number > 0, got {value!r}")
         if self.lr_schedule == "adaptive" and not (
             self.lr_min <= self.lr_trunk_policy <= self.lr_max
         ):
@@ -190,15 +224,32 @@ class TrainConfig:
                 f"train.lr_trunk_policy ({self.lr_trunk_policy}) must lie in [train.lr_min, "
                 f"train.lr_max] = [{self.lr_min}, {self.lr_max}] with train.lr_schedule=adaptive"
             )
-        if not isinstance(self.critic_warmup_iterations, int) or self.critic_warmup_iterations < 0:
-            raise ValueError(
-                f"train.critic_warmup_iterations must be an integer >= 0, got "
-                f"{self.critic_warmup_iterations!r}"
-            )
-        if not 0.0 <= self.value_norm_decay < 1.0:
-            raise ValueError(
-                f"train.value_norm_decay must be in [0, 1), got {self.value_norm_decay}"
-            )
+
+
+def _check_integer(name: str, value: Any, *, minimum: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(f"train.{name} must be an integer >= {minimum}, got {value!r}")
+
+
+def _check_number(
+    name: str,
+    value: Any,
+    *,
+    low: float,
+    high: float = math.inf,
+    low_open: bool = False,
+    high_open: bool = False,
+) -> None:
+    number = not isinstance(value, bool) and isinstance(value, int | float)
+    if not (
+        number
+        and math.isfinite(value)
+        and (low < value if low_open else low <= value)
+        and (value < high if high_open else value <= high)
+    ):
+        closing = ")" if high_open or high == math.inf else "]"
+        interval = f"{'(' if low_open else '['}{low:g}, {high:g}{closing}"
+        raise ValueError(f"train.{name} must be a finite number in {interval}, got {value!r}")
 
 
 def make_training_env(
@@ -313,6 +364,7 @@ class MAPOCATrainer:
         data = self.collect()
         collected = time.perf_counter()
         metrics = self.update(data)
+        self._check_finite(metrics)
         self._synchronize()
         finished = time.perf_counter()
         frames = data.numel()
@@ -419,6 +471,25 @@ class MAPOCATrainer:
         out.set("grad_norm", grad_norm)
         out.set("loss_total", total)
         return out.detach()
+
+    def _check_finite(self, metrics: dict[str, float]) -> None:
+        """Raises ``FloatingPointError`` naming the first loss term, gradient norm or parameter
+        that an update made non-finite, so that a run stops before it saves them. The metrics are
+        on the host already; the parameters cost one host synchronisation per iteration."""
+        for name, value in metrics.items():
+            if (name.startswith("loss_") or name == "grad_norm") and not math.isfinite(value):
+                raise self._non_finite(f"{name} = {value}")
+        parameters = dict(self.networks.named_parameters())
+        finite = torch.stack([parameter.isfinite().all() for parameter in parameters.values()])
+        if not finite.all():
+            first = list(parameters)[int(finite.logical_not().nonzero()[0])]
+            raise self._non_finite(f"parameter {first} holds non-finite values")
+
+    def _non_finite(self, what: str) -> FloatingPointError:
+        return FloatingPointError(
+            f"iteration {self.iteration + 1} made {what}; lower the learning rates "
+            "(train.lr_trunk_policy, train.lr_value_baseline) first"
+        )
 
     # --- checkpoints -----------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:

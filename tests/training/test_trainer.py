@@ -3,6 +3,7 @@ CUDA-graph replay of acting and updating against eager execution, and determinis
 
 import copy
 import dataclasses
+import math
 
 import pytest
 import torch
@@ -369,3 +370,70 @@ def test_critic_warmup_trains_the_critics_and_leaves_the_policy_untouched():
 def test_bad_learning_rate_settings_are_refused(field, value):
     with pytest.raises(ValueError, match=f"train.{field}"):
         TrainConfig(**{"lr_schedule": "adaptive", field: value}).validate()
+
+
+@pytest.mark.parametrize("field", [field.name for field in dataclasses.fields(TrainConfig)])
+def test_every_setting_of_the_wrong_type_is_refused_by_name(field):
+    with pytest.raises(ValueError, match=rf"^train\.{field} .*got 'junk'"):
+        TrainConfig(**{field: "junk"}).validate()
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "allowed"),
+    [
+        # signs
+        ("lr_value_baseline", -1e-4, r"in \(0, inf\)"),
+        ("lr_end_factor", -0.1, r"in \(0, inf\)"),
+        ("max_grad_norm_start", -5.0, r"in \(0, inf\)"),
+        ("value_coeff", -1.0, r"in \[0, inf\)"),
+        ("baseline_coeff", -0.5, r"in \[0, inf\)"),
+        ("weight_decay", -0.01, r"in \[0, inf\)"),
+        ("entropy_coeff_end", -0.001, r"in \[0, inf\)"),
+        # zero
+        ("schedule_iterations", 0, "an integer >= 1"),
+        ("max_grad_norm_end", 0.0, r"in \(0, inf\)"),
+        ("value_clip_start", 0.0, r"in \(0, inf\)"),
+        ("clip_epsilon_end", 0.0, r"in \(0, 1\)"),
+        ("gamma", 0.0, r"in \(0, 1\]"),
+        # NaN and infinity
+        ("entropy_coeff_start", float("nan"), r"in \[0, inf\)"),
+        ("lr_trunk_policy", float("nan"), r"in \(0, inf\)"),
+        ("value_clip_end", float("inf"), r"in \(0, inf\)"),
+        ("teacher_coeff", float("inf"), r"in \[0, inf\)"),
+        ("lmbda", float("nan"), r"in \[0, 1\]"),
+        # above a range
+        ("clip_epsilon_start", 1.0, r"in \(0, 1\)"),
+        ("value_norm_decay", 1.0, r"in \[0, 1\)"),
+        # types
+        ("epochs", 2.0, "an integer >= 1"),
+        ("num_envs", True, "an integer >= 1"),
+        ("compile", 1, "true or false"),
+        ("normalize_value", "false", "true or false"),
+    ],
+)
+def test_a_setting_outside_its_range_is_refused_with_the_range(field, value, allowed):
+    with pytest.raises(ValueError, match=rf"^train\.{field} must be .*{allowed}, got {value!r}"):
+        TrainConfig(**{field: value}).validate()
+
+
+def test_a_non_finite_update_stops_training_naming_the_first_non_finite_loss():
+    # the learning rates jump to 3e6 after the first update
+    trainer = make_trainer(lr_end_factor=1.0e10, schedule_iterations=1)
+    assert math.isfinite(trainer.train_iteration()["loss_total"])
+    with pytest.raises(FloatingPointError, match="^iteration 2 made loss_objective = nan"):
+        trainer.train_iteration()
+
+
+def test_a_non_finite_parameter_stops_training_naming_it(monkeypatch):
+    trainer = make_trainer()
+    update = trainer.update
+
+    def update_that_breaks_a_parameter(data):
+        metrics = update(data)
+        trainer.networks.value_head.get_parameter(name).data[0] = math.inf
+        return metrics
+
+    name = next(name for name, _ in trainer.networks.value_head.named_parameters())
+    monkeypatch.setattr(trainer, "update", update_that_breaks_a_parameter)
+    with pytest.raises(FloatingPointError, match=rf"^iteration 1 made parameter \S*{name} holds"):
+        trainer.train_iteration()
