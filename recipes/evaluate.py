@@ -17,7 +17,18 @@ from pathlib import Path
 
 import hydra
 import torch
-from mapoca_pretrain import resolve_device, structured
+from mapoca_pretrain import (
+    BOOLEAN,
+    POSITIVE,
+    TEXT,
+    WEIGHTS_KEYS,
+    check_settings,
+    integer,
+    one_of,
+    or_null,
+    resolve_device,
+    structured,
+)
 from omegaconf import DictConfig
 from torchrl.envs.utils import ExplorationType
 
@@ -26,16 +37,29 @@ from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training import load_checkpoint, make_training_env
 from terrashift_rl.training.evaluation import actor_policy, evaluate, evaluate_baselines
 
+SETTINGS = {
+    "checkpoint": or_null(TEXT, "the baselines alone"),
+    "scene_from_checkpoint": BOOLEAN,
+    "episodes": integer(1),
+    "respawn": (BOOLEAN[0], "false (evaluation mode) or true (training mode)"),
+    "baselines": BOOLEAN,
+    "seed": integer(0),
+    "video.steps": integer(0),
+    "video.every": integer(1),
+    "video.fps": POSITIVE,
+    "video.format": one_of("mp4", "gif"),
+    "wandb": BOOLEAN,
+}
+"""The rules of every setting but ``device`` (:func:`~mapoca_pretrain.resolve_device`) and the
+``env`` group's (:class:`~terrashift_rl.sim.config.TerraShiftConfig`)."""
+
 
 @hydra.main(version_base=None, config_path="configs", config_name="evaluate")
 def main(cfg: DictConfig) -> None:
-    if not isinstance(cfg.respawn, bool):
-        raise ValueError(
-            f"respawn must be false (evaluation mode) or true (training mode), got {cfg.respawn!r}"
-        )
-    device = resolve_device(cfg.device)
+    check_settings(cfg, SETTINGS)
+    device = resolve_device(cfg.device, "device")
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
-    checkpoint = load_checkpoint(cfg.checkpoint) if cfg.checkpoint else None
+    checkpoint = load_checkpoint(cfg.checkpoint, required=WEIGHTS_KEYS) if cfg.checkpoint else None
     if checkpoint is not None and cfg.scene_from_checkpoint:
         scene = TerraShiftConfig(**checkpoint["env_config"])
     else:

@@ -11,15 +11,20 @@ Outputs (checkpoints, logs, resolved config) go to Hydra's run directory.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import shlex
 import signal
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import hydra
 import torch
 from hydra.core.config_store import ConfigStore
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.errors import OverrideParseException
 from omegaconf import DictConfig, OmegaConf
 from torchrl.record.loggers import Logger
 from tqdm import tqdm
@@ -34,6 +39,7 @@ from terrashift_rl.training import (
     make_training_env,
     save_checkpoint,
 )
+from terrashift_rl.training.checkpoint import remove_stale_temporaries
 from terrashift_rl.training.evaluation import evaluate_periodically
 
 # The env and model groups' files name the fields they change; these dataclasses supply the
@@ -55,7 +61,77 @@ def structured(cls: type, values: Any, group: str):
     return cls(**values)
 
 
-def resolve_device(name: str) -> torch.device:
+# What evaluate.py and finetuning read (weights_state); resuming needs the trainer's state too.
+WEIGHTS_KEYS = ("networks", "env_config", "model_config", "env_steps")
+RESUME_KEYS = (*WEIGHTS_KEYS, "optimizer", "train_config", "simulator", "carry")
+
+
+# A setting's rule: a test of its value and the text that says what the test allows.
+Rule = tuple[Callable[[Any], bool], str]
+
+
+def integer(minimum: int) -> Rule:
+    return (
+        lambda value: isinstance(value, int) and not isinstance(value, bool) and value >= minimum,
+        f"an integer >= {minimum}",
+    )
+
+
+def one_of(*options: Any) -> Rule:
+    return (
+        lambda value: value in options,
+        ", ".join(map(str, options[:-1])) + f" or {options[-1]}",
+    )
+
+
+def or_null(rule: Rule, meaning: str) -> Rule:
+    test, allowed = rule
+    return (lambda value: value is None or test(value), f"{allowed} or null ({meaning})")
+
+
+POSITIVE: Rule = (
+    lambda value: (
+        isinstance(value, int | float)
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+        and value > 0
+    ),
+    "a finite number > 0",
+)
+BOOLEAN: Rule = (lambda value: isinstance(value, bool), "true or false")
+TEXT: Rule = (lambda value: isinstance(value, str) and value != "", "a non-empty string")
+
+RUN_SETTINGS: dict[str, Rule] = {
+    "run.name": TEXT,
+    "run.seed": integer(0),
+    "run.total_env_steps": integer(1),
+    "run.minutes": or_null(POSITIVE, "no time limit"),
+    "run.checkpoint_every": integer(1),
+    "run.best_window": (integer(0)[0], "an integer >= 0 (0: no best.pt)"),
+    "run.snapshot_every": or_null(integer(1), "no snapshots"),
+    "run.eval_every": or_null(integer(1), "no evaluation"),
+    "run.eval_episodes": integer(1),
+    "run.eval_seed": integer(0),
+    "run.resume": or_null(TEXT, "a fresh start"),
+    "run.pretrained": or_null(TEXT, "initial weights"),
+    "logger.kind": one_of("wandb", "csv", "tensorboard", "none"),
+}
+"""The rules of the ``run`` and ``logger`` settings (``run.device``: :func:`resolve_device`)."""
+
+
+def check_settings(cfg: DictConfig, rules: dict[str, Rule]) -> None:
+    """Raises ``ValueError`` naming the first setting of ``cfg`` that breaks its rule, with its
+    value and what the rule allows."""
+    for key, (test, allowed) in rules.items():
+        value = OmegaConf.select(cfg, key)
+        if not test(value):
+            raise ValueError(f"{key} must be {allowed}, got {value!r}")
+
+
+def resolve_device(name: Any, key: str) -> torch.device:
+    """The device setting ``key``: ``auto`` (CUDA when present, else the CPU), ``cpu``, ``cuda``
+    or ``cuda:<index>``; raises ``ValueError`` naming ``key`` for anything else or for a CUDA
+    device this machine lacks."""
     if name == "auto":
         if torch.cuda.is_available():
             return torch.device("cuda")
@@ -64,7 +140,18 @@ def resolve_device(name: str) -> torch.device:
             "(e.g. --config-name smoke, or train.num_envs=16 model=small)"
         )
         return torch.device("cpu")
-    return torch.device(name)
+    try:
+        device = torch.device(name) if isinstance(name, str) else None
+    except RuntimeError:
+        device = None
+    if device is None or device.type not in ("cpu", "cuda"):
+        raise ValueError(f"{key} must be auto, cpu, cuda or cuda:<index>, got {name!r}")
+    if device.type == "cuda" and (device.index or 0) >= torch.cuda.device_count():
+        raise ValueError(
+            f"{key}={name}, but this machine has {torch.cuda.device_count()} CUDA device(s); "
+            f"use {key}=auto or {key}=cpu"
+        )
+    return device
 
 
 def make_logger(cfg: DictConfig, run_dir: Path, run_id: str | None) -> Logger | None:
@@ -79,21 +166,17 @@ def make_logger(cfg: DictConfig, run_dir: Path, run_id: str | None) -> Logger | 
         from torchrl.record.loggers import TensorboardLogger
 
         return TensorboardLogger(cfg.run.name, log_dir=str(run_dir / "logs"))
-    if kind == "wandb":
-        from torchrl.record.loggers import WandbLogger
+    from torchrl.record.loggers import WandbLogger
 
-        if cfg.logger.mode not in ("offline", "online"):
-            raise ValueError(f"logger.mode must be offline or online, got {cfg.logger.mode!r}")
-        return WandbLogger(
-            cfg.run.name,
-            offline=cfg.logger.mode == "offline",
-            save_dir=str(run_dir),
-            project=cfg.logger.project,
-            id=run_id,
-            resume="allow",
-            log_env_packages=False,
-        )
-    raise ValueError(f"logger.kind must be wandb, csv, tensorboard or none, got {kind!r}")
+    return WandbLogger(
+        cfg.run.name,
+        offline=cfg.logger.mode == "offline",
+        save_dir=str(run_dir),
+        project=cfg.logger.project,
+        id=run_id,
+        resume="allow",
+        log_env_packages=False,
+    )
 
 
 # How the networks execute, not what they learn: a run may resume with other values.
@@ -108,6 +191,18 @@ def network_settings(model_config: dict) -> dict:
     return {k: v for k, v in model_config.items() if k not in INITIALISATION_SETTINGS}
 
 
+def override(key: str, value: Any) -> str:
+    """``key=value`` as Hydra reads it back as ``value``, quoted for a shell where needed."""
+    text = json.dumps(value, separators=(",", ":"))  # null, true, [4,8,8], "box"
+    if isinstance(value, str):
+        try:  # unquoted where Hydra reads the bare string as that string
+            if OverridesParser.create().parse_override(f"{key}={value}").value() == value:
+                text = value
+        except OverrideParseException:
+            pass
+    return shlex.quote(f"{key}={text}")
+
+
 def check_resumable(resume: dict, configs: dict, cfg: DictConfig) -> None:
     """Raises unless the checkpoint ``resume`` was trained with ``configs`` (env, model, train
     and loss settings, execution and initialisation settings aside), naming the overrides that
@@ -120,7 +215,7 @@ def check_resumable(resume: dict, configs: dict, cfg: DictConfig) -> None:
             if saved == value or (name == "train_config" and key in EXECUTION_SETTINGS):
                 continue
             prefix = group or ("loss" if key in cfg.loss else "train")
-            differ.append(f"{prefix}.{key}={'null' if saved is None else saved}")
+            differ.append(override(f"{prefix}.{key}", saved))
     if differ:
         raise ValueError(
             f"run.resume={cfg.run.resume} was trained with other settings; add "
@@ -156,10 +251,6 @@ class StopRequest:
     def __exit__(self, *exc_info: Any) -> None:
         for number, handler in self.previous.items():
             signal.signal(number, handler)
-
-
-def is_integer(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def checkpoint_state(
@@ -199,6 +290,9 @@ def update_best(
 def train(cfg: DictConfig) -> Path:
     """Runs the recipe; returns the path of the last checkpoint."""
     # --- config ------------------------------------------------------------------------------
+    check_settings(cfg, RUN_SETTINGS)
+    if cfg.logger.kind == "wandb":
+        check_settings(cfg, {"logger.mode": one_of("offline", "online")})
     env_config = structured(TerraShiftConfig, cfg.env, "env")
     model_config = structured(TerraShiftModelConfig, cfg.model, "model")
     train_config = structured(
@@ -207,38 +301,29 @@ def train(cfg: DictConfig) -> Path:
         "train/loss",
     )
     train_config.validate()
-    window = cfg.run.best_window
-    if not is_integer(window) or window < 0:
-        raise ValueError(f"run.best_window must be an integer >= 0 (0: no best.pt), got {window!r}")
-    snapshot_every = cfg.run.snapshot_every
-    if snapshot_every is not None and not (is_integer(snapshot_every) and snapshot_every >= 1):
-        raise ValueError(
-            f"run.snapshot_every must be a positive integer or null (no snapshots), got "
-            f"{snapshot_every!r}"
-        )
+    window, snapshot_every = cfg.run.best_window, cfg.run.snapshot_every
     eval_every, eval_episodes = cfg.run.eval_every, cfg.run.eval_episodes
-    if eval_every is not None and not (is_integer(eval_every) and eval_every >= 1):
-        raise ValueError(
-            f"run.eval_every must be a positive integer or null (no evaluation), got {eval_every!r}"
-        )
-    if not (is_integer(eval_episodes) and eval_episodes >= 1):
-        raise ValueError(f"run.eval_episodes must be a positive integer, got {eval_episodes!r}")
-    device = resolve_device(cfg.run.device)
+    device = resolve_device(cfg.run.device, "run.device")
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
     checkpoints = run_dir / "checkpoints"
     configs = {
         "env_config": dataclasses.asdict(env_config),
         "model_config": dataclasses.asdict(model_config),
     }
-    resume = load_checkpoint(cfg.run.resume) if cfg.run.resume else None
+    resume = load_checkpoint(cfg.run.resume, required=RESUME_KEYS) if cfg.run.resume else None
     if resume is not None:
         check_resumable(resume, {**configs, "train_config": dataclasses.asdict(train_config)}, cfg)
+    # a run killed while writing a checkpoint leaves its temporary file beside it
+    folders = [checkpoints] if resume is None else [checkpoints, Path(cfg.run.resume).parent]
+    for folder in folders:
+        for path in remove_stale_temporaries(folder):
+            print(f"removed {path}, left by a checkpoint write that never finished")
 
     # --- setup -------------------------------------------------------------------------------
     torch.manual_seed(cfg.run.seed)
     networks = make_terrashift_networks(model_config).to(device)
     if cfg.run.pretrained:
-        pretrained = load_checkpoint(cfg.run.pretrained)
+        pretrained = load_checkpoint(cfg.run.pretrained, required=WEIGHTS_KEYS)
         if network_settings(pretrained["model_config"]) != network_settings(
             configs["model_config"]
         ):
@@ -324,6 +409,9 @@ def train(cfg: DictConfig) -> Path:
     except KeyboardInterrupt:
         progress.write(f"interrupted mid-iteration; {last} is the last checkpoint written")
         raise SystemExit(130) from None
+    except FloatingPointError as error:
+        written = f"{last} is the last checkpoint written" if last.exists() else "no checkpoint"
+        raise SystemExit(f"{error}\nstopped without saving that iteration; {written}") from None
     finally:
         progress.close()
         if (

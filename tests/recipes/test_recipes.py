@@ -1,6 +1,8 @@
 """Recipes: every config composes; the smoke config trains, resumes exactly and finetunes."""
 
 import json
+import os
+import shlex
 import signal
 import subprocess
 import sys
@@ -10,8 +12,12 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 from PIL import Image
 from tqdm import tqdm
+
+from terrashift_rl.training import TrainConfig, load_checkpoint
+from terrashift_rl.training.checkpoint import STALE_AFTER_S
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPES = ROOT / "recipes"
@@ -44,7 +50,6 @@ def test_primary_configs_compose(name):
 def test_every_group_option_composes_into_its_dataclass(group, option):
     from terrashift_rl.modules import TerraShiftModelConfig
     from terrashift_rl.sim import TerraShiftConfig
-    from terrashift_rl.training import TrainConfig
 
     with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
         cfg = compose(config_name="mapoca_pretrain", overrides=[f"{group}={option}"])
@@ -61,8 +66,6 @@ def test_every_group_option_composes_into_its_dataclass(group, option):
 
 def test_default_train_and_loss_groups_are_train_config_defaults():
     """The recipe's defaults and the library's TrainConfig() are the same measured setting."""
-    from terrashift_rl.training import TrainConfig
-
     with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
         cfg = compose(config_name="mapoca_pretrain")
     assert TrainConfig(**{**cfg.train, **cfg.loss}) == TrainConfig()
@@ -87,6 +90,10 @@ def test_smoke_train_resume_and_finetune(tmp_path):
     assert straight.returncode == 0, straight.stderr
     first = run("mapoca_pretrain.py", "run.total_env_steps=32", "hydra.run.dir=b", cwd=tmp_path)
     assert first.returncode == 0, first.stderr
+    # as a kill during a checkpoint's write leaves it; the resumed run removes it
+    stale = tmp_path / "b/checkpoints/.last.pt.killed.tmp"
+    stale.write_bytes(b"half a checkpoint")
+    os.utime(stale, (time.time() - 2 * STALE_AFTER_S,) * 2)
     resumed = run(
         "mapoca_pretrain.py",
         "run.total_env_steps=96",
@@ -95,8 +102,9 @@ def test_smoke_train_resume_and_finetune(tmp_path):
         cwd=tmp_path,
     )
     assert resumed.returncode == 0, resumed.stderr
-    a = torch.load(tmp_path / "a/checkpoints/last.pt", weights_only=False)
-    c = torch.load(tmp_path / "c/checkpoints/last.pt", weights_only=False)
+    assert not stale.exists() and f"removed {stale.relative_to(tmp_path)}" in resumed.stdout
+    a = load_checkpoint(tmp_path / "a/checkpoints/last.pt")
+    c = load_checkpoint(tmp_path / "c/checkpoints/last.pt")
     assert a["iteration"] == c["iteration"] == 3
     # a killed-and-resumed run continues exactly where the straight run went
     for name, value in a["networks"].items():
@@ -112,7 +120,7 @@ def test_smoke_train_resume_and_finetune(tmp_path):
         cwd=tmp_path,
     )
     assert finetune.returncode == 0, finetune.stderr
-    d = torch.load(tmp_path / "d/checkpoints/last.pt", weights_only=False)
+    d = load_checkpoint(tmp_path / "d/checkpoints/last.pt")
     assert d["env_config"]["num_agents"] == 6 and d["iteration"] == 2
 
     evaluation = run(
@@ -157,7 +165,7 @@ def test_a_terminated_run_checkpoints_a_whole_iteration(tmp_path):
     stdout, stderr = killed.communicate(timeout=300)
     assert killed.returncode == 0, stderr
     assert "SIGTERM: stopping after this iteration" in stdout
-    k = torch.load(tmp_path / "k/checkpoints/last.pt", weights_only=False)
+    k = load_checkpoint(tmp_path / "k/checkpoints/last.pt")
     straight = run(
         "mapoca_pretrain.py",
         f"run.total_env_steps={k['env_steps']}",
@@ -165,7 +173,7 @@ def test_a_terminated_run_checkpoints_a_whole_iteration(tmp_path):
         cwd=tmp_path,
     )
     assert straight.returncode == 0, straight.stderr
-    s = torch.load(tmp_path / "s/checkpoints/last.pt", weights_only=False)
+    s = load_checkpoint(tmp_path / "s/checkpoints/last.pt")
     assert s["iteration"] == k["iteration"]
     for name, value in s["networks"].items():
         torch.testing.assert_close(k["networks"][name], value, atol=0, rtol=0)
@@ -199,20 +207,20 @@ def test_best_checkpoint_and_snapshots_hold_the_weights_they_name(tmp_path):
     steps, rewards = [int(step) for step, _ in rows], [float(reward) for _, reward in rows]
     means = [(rewards[i - 1] + rewards[i]) / 2 for i in range(1, len(rewards))]
     best_index = max(range(len(means)), key=means.__getitem__)
-    best = torch.load(tmp_path / "a/checkpoints/best.pt", weights_only=False)
+    best = load_checkpoint(tmp_path / "a/checkpoints/best.pt")
     assert len(rewards) == 4
     assert best["mean_reward_per_decision"] == pytest.approx(means[best_index], rel=1e-6)
     assert best["env_steps"] == steps[best_index + 1]
     assert best["iteration"] == best_index + 2
-    last = torch.load(tmp_path / "a/checkpoints/last.pt", weights_only=False)
+    last = load_checkpoint(tmp_path / "a/checkpoints/last.pt")
     assert last["best"]["reward"] == best["mean_reward_per_decision"]
     assert last["best"]["recent"] == pytest.approx(rewards[-2:], rel=1e-6)
     # a snapshot every 2 iterations: the weights and counters of that iteration
     snapshots = sorted(path.name for path in (tmp_path / "a/checkpoints").glob("iteration_*.pt"))
     assert snapshots == ["iteration_000002.pt", "iteration_000004.pt"]
-    second = torch.load(tmp_path / "a/checkpoints/iteration_000002.pt", weights_only=False)
+    second = load_checkpoint(tmp_path / "a/checkpoints/iteration_000002.pt")
     assert (second["iteration"], second["env_steps"]) == (2, steps[1])
-    fourth = torch.load(tmp_path / "a/checkpoints/iteration_000004.pt", weights_only=False)
+    fourth = load_checkpoint(tmp_path / "a/checkpoints/iteration_000004.pt")
     for name, value in last["networks"].items():
         torch.testing.assert_close(fourth["networks"][name], value, atol=0, rtol=0)
     assert any(
@@ -308,7 +316,7 @@ def test_resume_names_the_settings_that_differ_from_the_checkpoints(tmp_path):
         "run.resume=b/checkpoints/last.pt",
         "model.embed_dim=64",
         "loss.gamma=0.9",
-        "+train.compile=true",  # how the networks execute may change
+        "train.compile=true",  # how the networks execute may change
         "hydra.run.dir=y",
         cwd=tmp_path,
     )
@@ -316,3 +324,129 @@ def test_resume_names_the_settings_that_differ_from_the_checkpoints(tmp_path):
     assert "add model.embed_dim=32 train.minibatches=1 loss.gamma=0.95 to continue" in (
         result.stderr
     )
+
+
+def compose_config(name: str, *overrides: str):
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
+        return compose(config_name=name, overrides=list(overrides))
+
+
+def test_the_smoke_config_takes_every_train_setting():
+    cfg = compose_config("smoke", "train.lr_trunk_policy=0.001", "train.compile=true")
+    assert cfg.train.lr_trunk_policy == 0.001 and cfg.train.compile
+    assert set(cfg.train) == set(compose_config("mapoca_pretrain").train)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ("run.checkpoint_every=0", "run.checkpoint_every must be an integer >= 1, got 0"),
+        ("run.seed=abc", "run.seed must be an integer >= 0, got 'abc'"),
+        ("run.total_env_steps=-64", "run.total_env_steps must be an integer >= 1, got -64"),
+        ("run.total_env_steps=1e3", "run.total_env_steps must be an integer >= 1, got 1000.0"),
+        ("run.minutes=-1", r"run.minutes must be a finite number > 0 or null \(no time limit\)"),
+        ("run.minutes=nan", "run.minutes must be a finite number > 0 .*, got nan"),
+        ("run.eval_every=0", "run.eval_every must be an integer >= 1 or null"),
+        ("run.name=''", "run.name must be a non-empty string, got ''"),
+        ("run.device=tpu", "run.device must be auto, cpu, cuda or cuda:<index>, got 'tpu'"),
+        ("logger=wandb logger.mode=loud", "logger.mode must be offline or online, got 'loud'"),
+        (
+            "train.lr_trunk_policy=-1",
+            r"train.lr_trunk_policy must be a finite number in \(0, inf\)",
+        ),
+        ("train.lr_value_baseline=inf", r"train.lr_value_baseline must be .*, got inf"),
+        ("train.max_grad_norm_start=-1", "train.max_grad_norm_start must be"),
+        ("train.schedule_iterations=0", "train.schedule_iterations must be an integer >= 1"),
+        ("train.lr_end_factor=-0.1", "train.lr_end_factor must be"),
+        ("train.bf16=maybe", "train.bf16 must be true or false, got 'maybe'"),
+        ("loss.entropy_coeff_start=nan", "train.entropy_coeff_start must be .*, got nan"),
+        ("loss.clip_epsilon_start=1.5", r"train.clip_epsilon_start must be .* \(0, 1\)"),
+        ("loss.value_coeff=-1", r"train.value_coeff must be a finite number in \[0, inf\)"),
+        ("env.num_agents=0", "num_agents must be an integer >= 1"),
+    ],
+)
+def test_every_kind_of_bad_setting_fails_before_an_environment_is_built(
+    monkeypatch, overrides, message
+):
+    def no_environment(*args, **kwargs):
+        raise AssertionError("an environment was built before the settings were checked")
+
+    monkeypatch.setattr(mapoca_pretrain, "make_training_env", no_environment)
+    with pytest.raises(ValueError, match=f"^{message}"):
+        mapoca_pretrain.train(compose_config("smoke", *overrides.split()))
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_cuda_without_cuda_is_refused_at_start_up():
+    with pytest.raises(ValueError, match="run.device=cuda, but this machine has 0 CUDA device"):
+        mapoca_pretrain.train(compose_config("smoke", "run.device=cuda"))
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("episodes=0", "episodes must be an integer >= 1, got 0"),
+        ("seed=-1", "seed must be an integer >= 0, got -1"),
+        ("video.format=avi", "video.format must be mp4 or gif, got 'avi'"),
+        ("video.fps=0", "video.fps must be a finite number > 0, got 0"),
+        ("baselines=maybe", "baselines must be true or false, got 'maybe'"),
+        ("checkpoint=7", r"checkpoint must be a non-empty string or null \(the baselines alone\)"),
+    ],
+)
+def test_evaluation_settings_are_checked(override, message):
+    import evaluate
+
+    with pytest.raises(ValueError, match=f"^{message}"):
+        mapoca_pretrain.check_settings(compose_config("evaluate", override), evaluate.SETTINGS)
+
+
+def test_the_resume_hint_pastes_into_a_shell_as_it_is():
+    cfg = compose_config("smoke")
+
+    def configs_of(cfg) -> dict:
+        return {
+            "env_config": dict(cfg.env),
+            "model_config": OmegaConf.to_container(cfg.model),
+            "train_config": {**cfg.train, **cfg.loss},
+        }
+
+    saved = configs_of(cfg)
+    saved["env_config"].update(column_shape="box", wrap_edges=False)
+    saved["model_config"].update(cnn_channels=[8, 16, 16])
+    saved["train_config"].update(gamma=0.9, lr_schedule="adaptive")
+    with pytest.raises(ValueError, match="add (.*) to continue it") as refused:
+        mapoca_pretrain.check_resumable(saved, configs_of(cfg), cfg)
+    hint = str(refused.value).split("; add ")[1].split(" to continue it")[0]
+    assert "'model.cnn_channels=[8,16,16]'" in hint.split()
+    resumed = compose_config("smoke", *shlex.split(hint))
+    mapoca_pretrain.check_resumable(saved, configs_of(resumed), resumed)  # nothing differs
+
+
+def test_a_run_that_turns_non_finite_stops_and_keeps_the_last_good_checkpoint(tmp_path):
+    result = run(
+        "mapoca_pretrain.py",
+        "train.lr_end_factor=1e10",  # the learning rates jump to 3e6 after the first update
+        "train.schedule_iterations=1",
+        "run.total_env_steps=96",
+        "run.eval_every=null",
+        "hydra.run.dir=a",
+        cwd=tmp_path,
+    )
+    assert result.returncode == 1
+    assert "iteration 2 made loss_objective = nan" in result.stderr
+    assert "stopped without saving that iteration" in result.stderr
+    last = load_checkpoint(tmp_path / "a/checkpoints/last.pt")
+    assert last["iteration"] == 1
+    assert all(value.isfinite().all() for value in last["networks"].values())
+
+
+def test_evaluate_refuses_a_checkpoint_that_would_run_code(tmp_path):
+    class CreatesAFile:
+        def __reduce__(self):
+            return (open, (str(tmp_path / "created_by_loading"), "w"))
+
+    torch.save({"networks": CreatesAFile()}, tmp_path / "shared.pt")
+    result = run("evaluate.py", "checkpoint=shared.pt", cwd=tmp_path, config_name=None)
+    assert result.returncode != 0
+    assert "refused to load shared.pt: loading it would call" in result.stderr
+    assert not (tmp_path / "created_by_loading").exists()
