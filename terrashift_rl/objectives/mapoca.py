@@ -18,7 +18,9 @@ Two passes, as with torchrl's PPO losses:
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
+import warnings
 from dataclasses import dataclass, fields
 from typing import Literal
 
@@ -41,6 +43,23 @@ __all__ = ["MAPOCALoss", "MAPOCAValueEstimator"]
 
 _ADVANTAGE_STD_EPS = 1e-8
 """Added to the standard deviation when normalising advantages (as ML-Agents does)."""
+
+_KEY_CONTENTS = {
+    "action": "the agents' actions at collection, [*B, K, A] ([*B, K] for discrete actions)",
+    "sample_log_prob": (
+        "the log-probabilities of the actions at collection, [*B, K] or [*B, K, A] (a torchrl "
+        "ProbabilisticActor built with return_log_prob=True writes them)"
+    ),
+    "reward": "the team reward, [*B, 1], or the agents' rewards, [*B, K, 1]",
+    "done": "the done flags (terminated or truncated), [*B, 1] or [*B, K, 1]",
+    "terminated": "the terminated flags, [*B, 1] or [*B, K, 1]",
+    "value": "the old team values V(s), [*B, 1], that loss.value_estimator(data) writes",
+    "baseline": "the old baselines, [*B, K, 1], that loss.value_estimator(data) writes",
+    "value_target": "the λ-returns, [*B, 1], that loss.value_estimator(data) writes",
+    "advantage": "the advantages, [*B, K, 1], that loss.value_estimator(data) writes",
+    "teacher_action": "the teacher's actions, [*B, K, A] (the loss has a teacher_coeff)",
+}
+"""What each key the loss reads holds, for the errors that name a missing or mis-shaped one."""
 
 
 class MAPOCAValueEstimator:
@@ -104,15 +123,40 @@ class MAPOCAValueEstimator:
         )
 
     @torch.no_grad()
-    def __call__(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Writes the value, value target, baselines and advantages into ``tensordict``."""
+    def __call__(
+        self,
+        tensordict: TensorDictBase,
+        *,
+        params: TensorDictBase | None = None,
+        target_params: TensorDictBase | None = None,
+    ) -> TensorDictBase:
+        """Writes the value, value target, baselines and advantages into ``tensordict``.
+
+        ``params`` and ``target_params`` are there for the call torchrl's PPO and MAPPO
+        examples make, ``loss.value_estimator(data, params=loss.critic_network_params,
+        target_params=loss.target_critic_network_params)``: both are ``None`` for this loss,
+        whose networks hold their parameters, and any other value is refused.
+        """
+        if params is not None or target_params is not None:
+            raise ValueError(
+                "MAPOCALoss runs its networks with the parameters they hold (the loss is not "
+                "functional: loss.critic_network_params and loss.target_critic_network_params "
+                "are None). Pass params=None and target_params=None, or load other weights "
+                "into the networks with load_state_dict."
+            )
         loss = self.loss
         keys = loss.tensor_keys
         if tensordict.batch_dims == 0:
             raise ValueError("The value-estimation pass needs a time dimension in the batch.")
         time_dim = _time_dim(tensordict)
         root = tensordict.copy().exclude("next")
-        next_step = tensordict.get("next").copy()
+        next_step = tensordict.get("next", None)
+        if next_step is None:
+            raise KeyError(
+                "The value-estimation pass reads the step that follows each sample under "
+                "'next' (its observations, reward and done flags); the input has no 'next'."
+            )
+        next_step = next_step.copy()
 
         # Step mode: every element runs from the recurrent state stored with it at collection
         # (and "next" from the state stored after the step), which reproduces the collection's
@@ -124,8 +168,8 @@ class MAPOCAValueEstimator:
         with set_exploration_type(ExplorationType.DETERMINISTIC), set_recurrent_mode(False):
             state_value, baseline = self._critics(root, with_baseline=True, elements=elements)
         agent_mask = loss._agent_mask(tensordict, baseline)
-        batch_dims = tensordict.batch_dims
-        done = _team_flag(tensordict.get(("next", *_as_tuple(keys.done))), agent_mask, batch_dims)
+        agent_shape = baseline.shape[:-1]
+        done = loss._team_flag(tensordict, "done", agent_mask, agent_shape)
         with set_exploration_type(ExplorationType.DETERMINISTIC), set_recurrent_mode(False):
             if self.reuse_root_values:
                 # runs on "next" where step t + 1's root is another episode or outside the batch
@@ -146,15 +190,8 @@ class MAPOCAValueEstimator:
             next_state_value = normalizer.denormalize(next_state_value)
             baseline = normalizer.denormalize(baseline)
 
-        team_reward = _team_reward(
-            tensordict.get(("next", *_as_tuple(keys.reward))),
-            agent_mask,
-            batch_dims=batch_dims,
-            reduction=loss.team_reward_reduction,
-        )
-        terminated = _team_flag(
-            tensordict.get(("next", *_as_tuple(keys.terminated))), agent_mask, batch_dims
-        )
+        team_reward = loss._team_reward(tensordict, agent_mask, agent_shape)
+        terminated = loss._team_flag(tensordict, "terminated", agent_mask, agent_shape)
         team_reward = team_reward.to(state_value.dtype)
 
         if self.value_type is ValueEstimators.GAE:
@@ -219,7 +256,10 @@ class MAPOCALoss(LossModule):
     them. On any tensordict the loss runs the actor's parameter module first, then the value
     network, then the baseline network, so heads may read what the actor writes (say, the
     per-agent embedding of a shared trunk): the trunk then runs once per pass. Self-contained
-    value and baseline networks work too.
+    value and baseline networks work too: :class:`~terrashift_rl.modules.CentralValue` and
+    :class:`~terrashift_rl.modules.CounterfactualBaseline` are such networks for any team with
+    flat per-agent observations, and the loss's default keys are those of torchrl's VMAS
+    environments.
 
     Per mini-batch, with ρ_i = π(a_i | s) / π_old(a_i | s) per agent (joint over the action
     dims unless ``per_dimension_ratio``), ε the clip range, and masked means over present
@@ -236,9 +276,16 @@ class MAPOCALoss(LossModule):
       teacher's action a*_i read at the ``teacher_action`` key: a pull towards a demonstrator
       (a scripted controller, an older policy) that a schedule can fade out.
 
-    The total loss is the sum of the four (five with a teacher). Returns come from V alone on
-    the team reward: termination stops the bootstrap, truncation (and the end of the batch)
-    bootstraps from V(s_{t+1}), and done (terminated or truncated) stops the λ-recursion.
+    The loss to minimise is the sum of every ``loss_*`` term of the output, as torchrl's
+    trainers add them up: ``sum(v for k, v in losses.items() if k.startswith("loss_"))``. A
+    MAPPO loop adds ``loss_objective + loss_critic + loss_entropy`` by name instead; with this
+    loss it would leave out ``loss_baseline``, and the baselines, from which every advantage
+    comes, would never train. The loss therefore warns, once, when a backward pass has gone
+    through ``loss_critic`` but not ``loss_baseline``.
+
+    Returns come from V alone on the team reward: termination stops the bootstrap,
+    truncation (and the end of the batch) bootstraps from V(s_{t+1}), and done (terminated or
+    truncated) stops the λ-recursion.
 
     The team reward and the done flags may sit at the root (``[*B, 1]``) or in the group
     (``[*B, K, 1]``), told apart by shape. A per-agent reward is reduced over the agents present
@@ -250,6 +297,31 @@ class MAPOCALoss(LossModule):
     The coefficients and clip ranges (``clip_value`` and ``teacher_coeff`` when not ``None``)
     are float buffers that torchrl's ``LossModule`` lets a schedule assign in place:
     ``loss.entropy_coeff = 0.001`` keeps device and dtype.
+
+    Like torchrl's losses built with ``functional=False``, the loss runs its networks with the
+    parameters they hold: ``critic_network_params`` and ``target_critic_network_params`` are
+    ``None``, so the call of torchrl's PPO examples, ``loss.value_estimator(data,
+    params=loss.critic_network_params, target_params=loss.target_critic_network_params)``,
+    works. :attr:`in_keys` lists the keys the two passes require, and an input that is missing
+    or of the wrong shape raises an error naming its key and the shape expected.
+
+    The defaults are :class:`~torchrl.objectives.ClipPPOLoss`'s (``clip_epsilon=0.2``,
+    ``entropy_coeff=0.01``, ``value_coeff`` as its ``critic_coeff=1.0``, a smooth-L1 critic
+    loss, no value clipping) but for three:
+
+    * ``normalize_advantage=True``, as torchrl's multi-agent
+      :class:`~torchrl.objectives.multiagent.MAPPOLoss` and the MAPPO paper (Yu et al. 2022):
+      A_i = G - b_i carries the reward's scale, which differs by orders of magnitude between
+      tasks, while the clip range and the entropy coefficient suppose advantages of about
+      unit scale. The advantages are standardised once per collected batch, over every agent
+      and step (ClipPPOLoss does it per mini-batch).
+    * ``baseline_coeff=0.5``, a weight ClipPPOLoss has no counterpart of: ML-Agents' POCA
+      weighs the baseline regression half the value regression (its critic term is
+      0.5 (L_V + 0.5 L_b)).
+    * ``max_log_ratio=8.0``, a guard ClipPPOLoss does not have: exp of a log-ratio beyond 11
+      overflows float16 and beyond 88 float32, and one infinite ratio makes every gradient
+      NaN. e^8 ≈ 3000 lies far beyond the ratios that clipped updates reach, so healthy
+      training never meets the clamp.
 
     Args:
         actor_network: the group's policy, e.g. a torchrl ``ProbabilisticActor`` writing the
@@ -284,41 +356,25 @@ class MAPOCALoss(LossModule):
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> from tensordict.nn import TensorDictModule, TensorDictSequential
+        >>> from tensordict.nn import TensorDictModule
         >>> from torch import nn
         >>> from torchrl.envs.utils import ExplorationType, set_exploration_type
         >>> from torchrl.modules import IndependentNormal, NormalParamExtractor, ProbabilisticActor
         >>> from torchrl.objectives import ValueEstimators
+        >>> from terrashift_rl.modules import CentralValue, CounterfactualBaseline
         >>> from terrashift_rl.objectives import MAPOCALoss
-        >>> class Baseline(nn.Module):  # b_i from own embedding and the others' (e_j, a_j)
-        ...     def __init__(self, dim, action_dim):
-        ...         super().__init__()
-        ...         self.own, self.head = nn.Linear(dim, dim), nn.Linear(dim, 1)
-        ...         self.others = nn.Linear(dim + action_dim, dim)
-        ...     def forward(self, embedding, action):
-        ...         others = self.others(torch.cat([embedding, action], -1))
-        ...         others = (others.sum(-2, keepdim=True) - others) / (others.shape[-2] - 1)
-        ...         return self.head(torch.tanh(self.own(embedding) + others))
         >>> _ = torch.manual_seed(0)
-        >>> n_envs, n_steps, n_agents, obs_dim, action_dim, dim = 2, 5, 3, 4, 2, 8
-        >>> trunk = TensorDictModule(
-        ...     nn.Sequential(nn.Linear(obs_dim, dim), nn.Tanh()),
-        ...     in_keys=[("agents", "observation")], out_keys=[("agents", "embedding")])
-        >>> policy_head = TensorDictModule(
-        ...     nn.Sequential(nn.Linear(dim, 2 * action_dim), NormalParamExtractor()),
-        ...     in_keys=[("agents", "embedding")],
-        ...     out_keys=[("agents", "loc"), ("agents", "scale")])
+        >>> n_envs, n_steps, n_agents, obs_dim, action_dim = 2, 5, 3, 4, 2
         >>> actor = ProbabilisticActor(
-        ...     TensorDictSequential(trunk, policy_head),
+        ...     TensorDictModule(
+        ...         nn.Sequential(nn.Linear(obs_dim, 2 * action_dim), NormalParamExtractor()),
+        ...         in_keys=[("agents", "observation")],
+        ...         out_keys=[("agents", "loc"), ("agents", "scale")]),
         ...     in_keys=[("agents", "loc"), ("agents", "scale")],
         ...     out_keys=[("agents", "action")], distribution_class=IndependentNormal,
         ...     return_log_prob=True)
-        >>> value = TensorDictModule(  # a head on the trunk's embeddings: the trunk runs once
-        ...     nn.Sequential(nn.Flatten(-2), nn.Linear(n_agents * dim, 1)),
-        ...     in_keys=[("agents", "embedding")], out_keys=["state_value"])
-        >>> baseline = TensorDictModule(
-        ...     Baseline(dim, action_dim), in_keys=[("agents", "embedding"), ("agents", "action")],
-        ...     out_keys=[("agents", "baseline")])
+        >>> value = CentralValue(obs_dim, width=16, num_heads=2)
+        >>> baseline = CounterfactualBaseline(obs_dim, action_dim, width=16, num_heads=2)
         >>> loss = MAPOCALoss(actor, value, baseline, clip_value=0.2)
         >>> loss = loss.make_value_estimator(ValueEstimators.GAE, gamma=0.95, lmbda=0.92)
         >>> batch = [n_envs, n_steps]
@@ -331,7 +387,9 @@ class MAPOCALoss(LossModule):
         ... }, batch_size=batch)
         >>> with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
         ...     data = actor(data)  # collection: samples actions, stores their log-probs
-        >>> data = loss.value_estimator(data)
+        >>> data = loss.value_estimator(  # as torchrl's PPO examples call it
+        ...     data, params=loss.critic_network_params,
+        ...     target_params=loss.target_critic_network_params)
         >>> data["agents", "advantage"].shape, data["value_target"].shape
         (torch.Size([2, 5, 3, 1]), torch.Size([2, 5, 1]))
         >>> for minibatch in data.reshape(-1).split(5):
@@ -458,6 +516,13 @@ class MAPOCALoss(LossModule):
             (set(value_network.in_keys) | set(baseline_network.in_keys)) & actor_outputs
         )
         self._in_keys = None
+        # torchrl's losses built with functional=False hold these as None; the PPO-style call
+        # value_estimator(data, params=..., target_params=...) passes them on
+        self.critic_network_params = None
+        self.target_critic_network_params = None
+        # what the last backward pass went through (see _warn_if_baseline_left_out)
+        self._backward_reached: dict[str, bool] | None = None
+        self._warned_baseline_left_out = False
         log_prob_keys = actor_network.log_prob_keys
         action_keys = actor_network.dist_sample_keys
         if len(log_prob_keys) == 1 and len(action_keys) == 1:
@@ -492,7 +557,12 @@ class MAPOCALoss(LossModule):
 
     @property
     def in_keys(self) -> list[NestedKey]:
-        """Input keys of the loss (the estimator's included), without what the actor writes."""
+        """The input keys the loss requires (the estimator's included).
+
+        Not listed: what the actor writes, and the optional agent mask (data without one
+        means every agent is present). Where the data has a mask, keep it with these keys:
+        ``data.select(*loss.in_keys, loss.tensor_keys.mask)``.
+        """
         if self._in_keys is None:
             keys = self.tensor_keys
             written = set(self.actor_network.det_part.out_keys)
@@ -505,14 +575,16 @@ class MAPOCALoss(LossModule):
                 *value_inputs,
                 *(key for key in self.baseline_network.in_keys if key not in written),
             ]
-            in_keys = [*network_inputs, keys.action, keys.sample_log_prob, keys.mask]
+            in_keys = [*network_inputs, keys.action, keys.sample_log_prob]
             if self.teacher_coeff is not None:
                 in_keys.append(keys.teacher_action)
             in_keys += [("next", *_as_tuple(key)) for key in value_inputs]
             in_keys += [
                 ("next", *_as_tuple(key)) for key in (keys.reward, keys.done, keys.terminated)
             ]
-            self._in_keys = list(dict.fromkeys(_flatten_key(key) for key in in_keys))
+            optional = {_flatten_key(keys.mask), ("next", *_as_tuple(keys.mask))}
+            in_keys = [_flatten_key(key) for key in in_keys]
+            self._in_keys = list(dict.fromkeys(key for key in in_keys if key not in optional))
         return self._in_keys
 
     @in_keys.setter
@@ -607,26 +679,47 @@ class MAPOCALoss(LossModule):
             ``teacher_distance`` (the mean squared distance to the teacher's action).
         """
         keys = self.tensor_keys
+        self._warn_if_baseline_left_out()
         tensordict = tensordict.copy()
         if keys.advantage not in tensordict.keys(include_nested=True):
             self.value_estimator(tensordict)
-        advantage = tensordict.get(keys.advantage).squeeze(-1)
-        value_target = tensordict.get(keys.value_target)
-        old_value = tensordict.get(keys.value)
-        old_baseline = tensordict.get(keys.baseline)
-        old_log_prob = tensordict.get(keys.sample_log_prob)
-        action = tensordict.get(keys.action)
+        old_log_prob = self._read(tensordict, "sample_log_prob")
+        action = self._read(tensordict, "action")
         if old_log_prob.requires_grad or action.requires_grad:
             raise RuntimeError("The stored action and log-prob must not require gradients.")
+        # read before the networks run: they write the new value and baselines at these keys
+        stored = {
+            name: self._read(tensordict, name)
+            for name in ("advantage", "value_target", "value", "baseline")
+        }
 
         dist = self.actor_network.get_dist(tensordict)
         value, baseline = self._run_critics(tensordict, with_baseline=True, run_actor=False)
-        agent_shape = advantage.shape
+        agent_shape = baseline.shape[:-1]
+        team_shape = (*tensordict.batch_size, 1)
+        for name, shape in (
+            ("advantage", (*agent_shape, 1)),
+            ("value_target", team_shape),
+            ("value", team_shape),
+            ("baseline", (*agent_shape, 1)),
+        ):
+            self._check_shape(stored[name], name, shape)
+        advantage = stored["advantage"].squeeze(-1)
+        value_target, old_value, old_baseline = (
+            stored[name] for name in ("value_target", "value", "baseline")
+        )
         agent_mask = self._agent_mask(tensordict, baseline)
 
+        if action.shape[: len(agent_shape)] != agent_shape or action.ndim > len(agent_shape) + 1:
+            raise ValueError(
+                f"MAPOCALoss reads {_flatten_key(keys.action)!r} as [*B, K, A] (or [*B, K]) with "
+                f"[*B, K] = {list(agent_shape)}, got {list(action.shape)}."
+            )
         log_prob = dist.log_prob(action)
-        joint_log_prob = _per_agent(log_prob, agent_shape, "log-prob")
-        joint_old_log_prob = _per_agent(old_log_prob, agent_shape, "stored log-prob")
+        joint_log_prob = _per_agent(log_prob, agent_shape, "the policy's log-prob")
+        joint_old_log_prob = _per_agent(
+            old_log_prob, agent_shape, f"stored log-prob {_flatten_key(keys.sample_log_prob)!r}"
+        )
         if self.per_dimension_ratio:
             if log_prob.shape == agent_shape or old_log_prob.shape == agent_shape:
                 raise ValueError(
@@ -663,16 +756,20 @@ class MAPOCALoss(LossModule):
             mask=agent_mask,
         )
 
+        loss_critic = self.value_coeff * loss_critic
+        loss_baseline = self.baseline_coeff * loss_baseline
+        self._watch_backward(loss_critic, loss_baseline)
         out = TensorDict(
             {
                 "loss_objective": loss_objective,
-                "loss_critic": self.value_coeff * loss_critic,
-                "loss_baseline": self.baseline_coeff * loss_baseline,
+                "loss_critic": loss_critic,
+                "loss_baseline": loss_baseline,
                 "loss_entropy": -self.entropy_coeff * entropy,
             }
         )
         if self.teacher_coeff is not None:
-            teacher = tensordict.get(keys.teacher_action)
+            teacher = self._read(tensordict, "teacher_action")
+            self._check_shape(teacher, "teacher_action", dist.mean.shape)
             distance = (dist.mean - teacher).pow(2).sum(-1)
             teacher_distance = _masked_mean(distance, agent_mask)
             out.set("loss_teacher", self.teacher_coeff * teacher_distance)
@@ -710,21 +807,142 @@ class MAPOCALoss(LossModule):
         """V [*B, 1] and, if asked, b [*B, K, 1] on ``tensordict``, which receives the outputs."""
         if run_actor and self._critics_read_actor_outputs:
             self.actor_network.get_dist_params(tensordict)
-        value = self.value_network(tensordict).get(self.tensor_keys.value)
-        if value.shape != (*tensordict.batch_size, 1):
+        keys = self.tensor_keys
+        team_shape = [*tensordict.batch_size, 1]
+        value = self.value_network(tensordict).get(keys.value, None)
+        if value is None:
+            raise KeyError(
+                f"The value network wrote no {_flatten_key(keys.value)!r}, where MAPOCALoss reads "
+                f"the team value V(s), [*B, 1] = {team_shape}; it writes "
+                f"{self.value_network.out_keys}. Point the loss at its output with "
+                "loss.set_keys(value=<key>); a value per agent, [*B, K, 1], as MAPPO's critics "
+                "write, must first be pooled over the agents (terrashift_rl.modules.CentralValue "
+                "pools them)."
+            )
+        if list(value.shape) == team_shape:
+            pass
+        elif value.shape[:-2] == tensordict.batch_size and value.shape[-1:] == (1,):
             raise ValueError(
-                f"The value network must write {self.tensor_keys.value!r} with shape "
-                f"[*B, 1] = {[*tensordict.batch_size, 1]}, got {list(value.shape)}."
+                f"The value network writes {_flatten_key(keys.value)!r} per agent, "
+                f"{list(value.shape)} = [*B, K, 1], as MAPPO's critics do. MAPOCALoss needs one "
+                f"team value V(s) per sample, [*B, 1] = {team_shape} (the counterfactual "
+                "baselines are its per-agent estimates): pool the agents in the value network, "
+                "as terrashift_rl.modules.CentralValue does, or average its output over the "
+                "agents (dim -2) in a module after it and point loss.set_keys(value=...) there."
+            )
+        else:
+            raise ValueError(
+                f"The value network must write {_flatten_key(keys.value)!r} with shape [*B, 1] "
+                f"= {team_shape}, got {list(value.shape)}."
             )
         if not with_baseline:
             return value, None
-        baseline = self.baseline_network(tensordict).get(self.tensor_keys.baseline)
-        if baseline.ndim != tensordict.batch_dims + 2 or baseline.shape[-1] != 1:
+        baseline = self.baseline_network(tensordict).get(keys.baseline, None)
+        if baseline is None:
+            raise KeyError(
+                f"The baseline network wrote no {_flatten_key(keys.baseline)!r}, where "
+                "MAPOCALoss reads the counterfactual baselines, [*B, K, 1]; it writes "
+                f"{self.baseline_network.out_keys}. Point the loss at its output with "
+                "loss.set_keys(baseline=<key>)."
+            )
+        if baseline.shape[:-2] != tensordict.batch_size or baseline.shape[-1:] != (1,):
             raise ValueError(
-                f"The baseline network must write {self.tensor_keys.baseline!r} with shape "
-                f"[*B, K, 1], got {list(baseline.shape)} for batch {list(tensordict.batch_size)}."
+                f"The baseline network must write {_flatten_key(keys.baseline)!r} with shape "
+                f"[*B, K, 1], [*B] = {list(tensordict.batch_size)}, got {list(baseline.shape)}."
             )
         return value, baseline
+
+    def _read(
+        self, tensordict: TensorDictBase, name: str, *, step: Literal["root", "next"] = "root"
+    ) -> torch.Tensor:
+        """The entry at the key ``name`` (under ``"next"`` for ``step="next"``); an error that
+        names the key and what it should hold if it is missing."""
+        key = getattr(self.tensor_keys, name)
+        if step == "next":
+            key = _flatten_key(("next", *_as_tuple(key)))
+        value = tensordict.get(key, None)
+        if value is None:
+            raise KeyError(
+                f"MAPOCALoss reads {key!r}, {_KEY_CONTENTS[name]}; the input has no such key. "
+                f"If the data holds it under another key, loss.set_keys({name}=<key>)."
+            )
+        return value
+
+    def _check_shape(self, value: torch.Tensor, name: str, shape: tuple[int, ...]) -> None:
+        """An error naming the key ``name`` and what it should hold if ``value`` is not of
+        ``shape``."""
+        if value.shape != shape:
+            key = getattr(self.tensor_keys, name)
+            raise ValueError(
+                f"MAPOCALoss reads {key!r}, {_KEY_CONTENTS[name]}, with shape {list(shape)} "
+                f"here; got {list(value.shape)}."
+            )
+
+    def _team_reward(
+        self,
+        tensordict: TensorDictBase,
+        agent_mask: torch.Tensor | None,
+        agent_shape: torch.Size,
+    ) -> torch.Tensor:
+        """The team reward [*B, 1] from a team [*B, 1] or per-agent [*B, K, 1] reward."""
+        reward = self._read(tensordict, "reward", step="next")
+        if not _is_per_agent(reward, ("next", *_as_tuple(self.tensor_keys.reward)), agent_shape):
+            return reward
+        if agent_mask is not None:
+            reward = torch.where(agent_mask.unsqueeze(-1), reward, 0.0)
+        team_reward = reward.sum(-2)
+        if self.team_reward_reduction == "mean":
+            present = (
+                reward.shape[-2]
+                if agent_mask is None
+                else agent_mask.sum(-1, keepdim=True).clamp_min(1)
+            )
+            team_reward = team_reward / present
+        return team_reward
+
+    def _team_flag(
+        self,
+        tensordict: TensorDictBase,
+        name: str,
+        agent_mask: torch.Tensor | None,
+        agent_shape: torch.Size,
+    ) -> torch.Tensor:
+        """A team flag [*B, 1] from a team [*B, 1] or per-agent [*B, K, 1] flag under "next":
+        true for the team when true for every present agent."""
+        flag = self._read(tensordict, name, step="next").bool()
+        key = ("next", *_as_tuple(getattr(self.tensor_keys, name)))
+        if not _is_per_agent(flag, key, agent_shape):
+            return flag
+        if agent_mask is not None:
+            flag = flag | ~agent_mask.unsqueeze(-1)
+        return flag.all(-2)
+
+    def _watch_backward(self, loss_critic: torch.Tensor, loss_baseline: torch.Tensor) -> None:
+        """Records which of the two critic terms the next backward pass goes through."""
+        if not (loss_critic.requires_grad and loss_baseline.requires_grad):
+            return
+        reached = {"loss_critic": False, "loss_baseline": False}
+        loss_critic.register_hook(functools.partial(_mark_reached, reached, "loss_critic"))
+        loss_baseline.register_hook(functools.partial(_mark_reached, reached, "loss_baseline"))
+        self._backward_reached = reached
+
+    def _warn_if_baseline_left_out(self) -> None:
+        """Warns once if a backward pass went through ``loss_critic`` but not ``loss_baseline``:
+        a MAPPO loop's sum, under which the baselines, and so the advantages, never learn."""
+        reached = self._backward_reached
+        if self._warned_baseline_left_out or reached is None:
+            return
+        if reached["loss_critic"] and not reached["loss_baseline"]:
+            self._warned_baseline_left_out = True
+            warnings.warn(
+                "MAPOCALoss: the last backward pass went through loss_critic but not "
+                "loss_baseline, so the counterfactual baselines, from which every agent's "
+                "advantage comes, did not train. Sum every loss_* term of the output, "
+                "sum(v for k, v in losses.items() if k.startswith('loss_')), rather than "
+                "MAPPO's loss_objective + loss_critic + loss_entropy.",
+                UserWarning,
+                stacklevel=2,
+            )
 
     def _agent_mask(
         self, tensordict: TensorDictBase, baseline: torch.Tensor
@@ -778,43 +996,22 @@ def _time_dim(tensordict: TensorDictBase) -> int:
     return names.index("time") if "time" in names else tensordict.batch_dims - 1
 
 
-def _team_reward(
-    reward: torch.Tensor,
-    agent_mask: torch.Tensor | None,
-    *,
-    batch_dims: int,
-    reduction: str,
-) -> torch.Tensor:
-    """The team reward [*B, 1] from a team [*B, 1] or per-agent [*B, K, 1] reward."""
-    if reward.ndim == batch_dims + 1:
-        return reward
-    if reward.ndim != batch_dims + 2:
-        raise ValueError(f"Expected a reward of shape [*B, 1] or [*B, K, 1], got {reward.shape}.")
-    if agent_mask is not None:
-        reward = torch.where(agent_mask.unsqueeze(-1), reward, 0.0)
-    team_reward = reward.sum(-2)
-    if reduction == "mean":
-        present = (
-            reward.shape[-2]
-            if agent_mask is None
-            else agent_mask.sum(-1, keepdim=True).clamp_min(1)
-        )
-        team_reward = team_reward / present
-    return team_reward
+def _mark_reached(reached: dict[str, bool], name: str, grad: torch.Tensor) -> None:
+    reached[name] = True
 
 
-def _team_flag(
-    flag: torch.Tensor, agent_mask: torch.Tensor | None, batch_dims: int
-) -> torch.Tensor:
-    """A team flag [*B, 1] from a team [*B, 1] or per-agent [*B, K, 1] flag: all present agents."""
-    if flag.ndim == batch_dims + 1:
-        return flag.bool()
-    if flag.ndim != batch_dims + 2:
-        raise ValueError(f"Expected a flag of shape [*B, 1] or [*B, K, 1], got {flag.shape}.")
-    flag = flag.bool()
-    if agent_mask is not None:
-        flag = flag | ~agent_mask.unsqueeze(-1)
-    return flag.all(-2)
+def _is_per_agent(value: torch.Tensor, key: NestedKey, agent_shape: torch.Size) -> bool:
+    """Whether ``value`` is per agent [*B, K, 1] rather than for the team [*B, 1]; an error
+    naming ``key`` if it is neither."""
+    if value.shape == (*agent_shape[:-1], 1):
+        return False
+    if value.shape == (*agent_shape, 1):
+        return True
+    raise ValueError(
+        f"MAPOCALoss reads {_flatten_key(key)!r} for the team, [*B, 1] = "
+        f"{[*agent_shape[:-1], 1]}, or per agent, [*B, K, 1] = {[*agent_shape, 1]}; "
+        f"got {list(value.shape)}."
+    )
 
 
 def _per_agent(value: torch.Tensor, agent_shape: torch.Size, what: str) -> torch.Tensor:
