@@ -212,7 +212,7 @@ def test_save_video_rejects_bad_suffixes_and_frames(tmp_path):
 
 
 def test_save_video_replaces_atomically_and_cleans_up_after_a_failure(tmp_path, monkeypatch):
-    from terrashift_rl.envs import render
+    from terrashift_rl.envs.render import video
 
     target = tmp_path / "out" / "clip.gif"
     save_video(moving_square(3, 32, 32), target)
@@ -224,7 +224,7 @@ def test_save_video_replaces_atomically_and_cleans_up_after_a_failure(tmp_path, 
         path.write_bytes(b"GIF89a half written")
         raise RuntimeError("killed mid-write")
 
-    monkeypatch.setitem(render._WRITERS, ".gif", crash)
+    monkeypatch.setitem(video._WRITERS, ".gif", crash)
     with pytest.raises(RuntimeError, match="killed"):
         save_video(moving_square(3, 32, 32), target)
     assert target.read_bytes() == old
