@@ -113,7 +113,7 @@ RUN_SETTINGS: dict[str, Rule] = {
     "run.eval_episodes": integer(1),
     "run.eval_seed": integer(0),
     "run.resume": or_null(TEXT, "a fresh start"),
-    "run.pretrained": or_null(TEXT, "initial weights"),
+    "run.pretrained": or_null(TEXT, "no pretrained weights"),
     "logger.kind": one_of("wandb", "csv", "tensorboard", "none"),
 }
 """The rules of the ``run`` and ``logger`` settings (``run.device``: :func:`resolve_device`)."""
