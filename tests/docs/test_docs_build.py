@@ -16,6 +16,7 @@ pytest.importorskip("sphinx_gallery")
 pytest.importorskip("myst_parser")
 
 
+@pytest.mark.slow  # about two minutes: every tutorial runs
 def test_docs_build_without_warnings(tmp_path: Path) -> None:
     env = {**os.environ, "OMP_NUM_THREADS": "2", "WANDB_MODE": "disabled", "MPLBACKEND": "Agg"}
     env["TERRASHIFT_DOCS_RERUN"] = "1"  # run every tutorial, even where a cached run exists
