@@ -35,9 +35,8 @@ class TerraShiftModelConfig:
     """Dropout probability, applied only in passes that will be backpropagated (see
     ``layers``). Table 1 uses 0.05, but collection has none, so in an update the ratio of new
     to stored log-probabilities then also carries dropout's noise: late in a run most of the
-    logged approximate KL and clip fraction (``benchmarks/diagnose_policy.py``). Runs with
-    0.05 lost more and more spheres after a few minutes; runs with 0 did not (docs/results.md,
-    runs 14 and 15)."""
+    logged approximate KL and clip fraction (``benchmarks/diagnose_policy.py``), and runs with
+    it lost more and more spheres (docs/experiments.md)."""
 
     agent_observation_dim: int = 9
     """Features per agent: wavelet [x, y, theta, A, sigma_x, sigma_y, v_x, v_y, omega]."""
@@ -99,9 +98,8 @@ class TerraShiftModelConfig:
     """Factor on the initial weights and biases of the policy's two output layers (PyTorch's
     default initialisation at 1). Near 0, every agent starts from the same action distribution,
     centred on the zero action whatever it observes; 0.01 is the setting Andrychowicz et al.
-    (2021, "What matters in on-policy reinforcement learning?") recommend. With the medium
-    network, 0.01 gave two 10-minute runs of four that learn to steer, as 1 did (docs/results.md,
-    runs 25-28)."""
+    (2021, "What matters in on-policy reinforcement learning?") recommend; it changes only the
+    initial weights, so a run may resume with another value."""
     critic_hidden_dim: int = 128
     """Hidden width of the value and baseline MLPs."""
 

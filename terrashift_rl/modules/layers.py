@@ -97,8 +97,8 @@ class MultiHeadAttention(nn.Module):
 
     Attention is written out (two einsums and a softmax) rather than calling
     ``scaled_dot_product_attention``: every set here holds 1 to 16 tokens, where SDPA's fused CUDA
-    kernels pad each (batch, head) pair to 64 x 64 tiles and took over half of a training step on
-    an H100; its cuDNN backend also failed in bf16 backward at 16384 environments. There is no
+    kernels pad each (batch, head) pair to 64 x 64 tiles and dominate a training step (its cuDNN
+    backend also failed in bf16 backward with large batches; docs/benchmarks.md). There is no
     dropout on the attention weights; blocks drop the attention's output instead.
 
     Args:

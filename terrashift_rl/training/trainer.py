@@ -56,10 +56,9 @@ class TrainConfig:
 
     Start/end pairs are linear schedules over ``schedule_iterations`` updates. The defaults
     (2,048 environments, 2 epochs of 8 mini-batches, learning rates 3e-4 / 6e-4, a constant
-    entropy coefficient of 0.001, schedules over 1,000 updates) are those of the pretraining
-    run that learned most per wall-clock second in ``docs/results.md``, not Table 1's (4 epochs
-    of small mini-batches from 8 environments, rates 1e-5 / 2e-5 over 5,000-10,000 updates,
-    entropy 0.005 -> 0.001), which suit thousands of environments poorly.
+    entropy coefficient of 0.001, schedules over 1,000 updates) suit thousands of environments
+    on one GPU; Table 1's (4 epochs of small mini-batches from 8 environments, rates 1e-5 / 2e-5
+    over 5,000-10,000 updates, entropy 0.005 -> 0.001) suit them poorly (docs/experiments.md).
     """
 
     num_envs: int = 2048
@@ -629,9 +628,8 @@ def episode_metrics(data: TensorDictBase) -> dict[str, float]:
 
 def concentration_metrics(data: TensorDictBase) -> dict[str, float]:
     """Per action dimension, ``concentration_<name>``: the median over the collected agent-steps
-    of the policy's Beta concentration alpha + beta: how sure the policy is of that action. In
-    docs/results.md, the runs that never learned to steer ended with the amplitude their most
-    concentrated action."""
+    of the policy's Beta concentration alpha + beta: how sure the policy is of that action (a
+    policy whose amplitude grows more concentrated than its velocities tends not to steer)."""
     total = data.get(keys.BETA_CONCENTRATION1) + data.get(keys.BETA_CONCENTRATION0)
     # the lower median through a sort: median(dim) has no deterministic CUDA implementation
     ordered = total.float().flatten(0, -2).sort(dim=0).values
