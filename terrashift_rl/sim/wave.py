@@ -36,21 +36,20 @@ def update_agents(
     """Applies one physics tick of action deltas to every wavelet. Launch dim: [num_envs, K]."""
     e, k = wp.tid()
     step = model.wave_step
-    a0 = wp.clamp(action[e, k, 0], -1.0, 1.0)
-    a1 = wp.clamp(action[e, k, 1], -1.0, 1.0)
-    a2 = wp.clamp(action[e, k, 2], -1.0, 1.0)
-    a3 = wp.clamp(action[e, k, 3], -1.0, 1.0)
-    a4 = wp.clamp(action[e, k, 4], -1.0, 1.0)
-    a5 = wp.clamp(action[e, k, 5], -1.0, 1.0)
+    # the action's dims in ACTION_NAMES order, each a change in [-1, 1]
+    d_velocity = wp.vec2(wp.clamp(action[e, k, 0], -1.0, 1.0), wp.clamp(action[e, k, 1], -1.0, 1.0))
+    d_omega = wp.clamp(action[e, k, 2], -1.0, 1.0)
+    d_amplitude = wp.clamp(action[e, k, 3], -1.0, 1.0)
+    d_sigma = wp.vec2(wp.clamp(action[e, k, 4], -1.0, 1.0), wp.clamp(action[e, k, 5], -1.0, 1.0))
 
     vmax = model.max_velocity
-    v = velocity[e, k] + model.velocity_gain * step * wp.vec2(a0, a1)
+    v = velocity[e, k] + model.velocity_gain * step * d_velocity
     v = wp.vec2(wp.clamp(v[0], -vmax, vmax), wp.clamp(v[1], -vmax, vmax))
     omax = model.max_angular_velocity
-    w = wp.clamp(angular_velocity[e, k] + model.angular_velocity_gain * step * a2, -omax, omax)
+    w = wp.clamp(angular_velocity[e, k] + model.angular_velocity_gain * step * d_omega, -omax, omax)
     amax = model.max_amplitude
-    amp = wp.clamp(amplitude[e, k] + model.amplitude_gain * step * a3, -amax, amax)
-    s = sigma[e, k] + model.sigma_gain * step * wp.vec2(a4, a5)
+    amp = wp.clamp(amplitude[e, k] + model.amplitude_gain * step * d_amplitude, -amax, amax)
+    s = sigma[e, k] + model.sigma_gain * step * d_sigma
     s = wp.vec2(
         wp.clamp(s[0], model.sigma_min, model.sigma_max),
         wp.clamp(s[1], model.sigma_min, model.sigma_max),
