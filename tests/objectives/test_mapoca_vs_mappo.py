@@ -1,0 +1,95 @@
+"""The MAPOCA-beside-MAPPO example: its team-navigation environment and the script itself."""
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+EXAMPLE = Path(__file__).parents[2] / "examples" / "mapoca_vs_mappo.py"
+STEP_SIZE = 0.1
+
+
+@pytest.fixture(scope="module")
+def example():
+    spec = importlib.util.spec_from_file_location("mapoca_vs_mappo", EXAMPLE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture
+def env(example):
+    env = example.TeamNavigationEnv(3, num_agents=2, episode_steps=3, step_size=STEP_SIZE)
+    env.set_seed(0)
+    return env
+
+
+def test_team_navigation_specs_match_its_data(env):
+    check_env_specs(env)
+
+
+def test_team_navigation_rewards_the_team_with_the_mean_distance_to_go(env):
+    data = env.reset()
+    offset = data["agents", "observation"][..., 2:]
+    distance = offset.norm(dim=-1)
+    # every agent heads straight for its goal (inside the square, so never clamped)
+    data["agents", "action"] = offset / distance.unsqueeze(-1)
+    after = env.step(data)["next"]
+    expected = -(distance - STEP_SIZE).abs().mean(-1, keepdim=True)
+    reward = after["agents", "reward"]
+    assert reward.shape == (3, 2, 1)
+    torch.testing.assert_close(reward, expected.unsqueeze(-1).expand(3, 2, 1))
+    torch.testing.assert_close(after["agents", "observation"][..., :2], env.position)
+
+
+def test_team_navigation_truncates_episodes_and_resets_only_those_asked(env):
+    data = env.reset()
+    for step in range(3):
+        data["agents", "action"] = torch.zeros(3, 2, 2)
+        data = env.step(data)
+        truncated = step == 2
+        assert (data["next", "done"] == truncated).all()
+        assert not data["next", "terminated"].any()
+        data = data["next"]
+    position, goal = env.position.clone(), env.goal.clone()
+    env.reset(TensorDict({"_reset": torch.tensor([[False], [True], [False]])}, [3]))
+    kept = [0, 2]
+    torch.testing.assert_close(env.position[kept], position[kept])
+    torch.testing.assert_close(env.goal[kept], goal[kept])
+    assert not torch.equal(env.position[1], position[1]) and (env.steps[1] == 0).all()
+    assert (env.steps[kept] == 3).all()
+
+
+def test_unknown_environment_is_refused(example):
+    with pytest.raises(ValueError, match="team_navigation or vmas:<scenario>"):
+        example.make_env("navigation", num_envs=2, episode_steps=3, seed=0)
+
+
+def test_example_trains_both_losses_and_writes_the_table(tmp_path):
+    output = tmp_path / "results.json"
+    options = ["--iterations", "2", "--num-envs", "4", "--episode-steps", "5"]
+    options += ["--minibatch-size", "10", "--seeds", "0", "1", "--json", str(output)]
+    result = subprocess.run(
+        [sys.executable, str(EXAMPLE), *options],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert lines[0].startswith("team_navigation: mean team reward per step")
+    assert [line.split()[0] for line in lines[2:]] == ["MAPOCA", "MAPPO"]
+    results = json.loads(output.read_text())
+    for method in ("MAPOCA", "MAPPO"):
+        assert len(results["table"][method]["finals"]) == 2
+        curves = results["curves"][method]
+        assert sorted(curves) == ["0", "1"] and all(len(curve) == 2 for curve in curves.values())
+        # the reward is minus a mean distance on the square [-1, 1]²
+        assert all(-2 * 2**0.5 <= reward <= 0 for curve in curves.values() for reward in curve)
