@@ -9,8 +9,12 @@ Contact model (docs/physics.md has the derivation and the stable ranges):
   slip of the contact point up to ``mu * f_n * dt``, acting on both linear and angular velocity,
   so a sphere that does not slip *rolls* (5/7 g sin(theta) down a slope).
 * Sphere pairs use the state at the start of the substep, so both partners compute the same
-  impulse with opposite signs and momentum is conserved exactly. Column contacts of one sphere
-  are then resolved one after another (Gauss-Seidel), which keeps stacked contacts stable.
+  impulse with opposite signs and momentum is conserved exactly. The column contacts of one
+  sphere are then all computed from the same velocities and combined (Jacobi iteration): no
+  contact goes first, so the result does not depend on the order in which columns are visited
+  and a mirrored scene gives the mirrored motion. Combining scales the velocity-level parts
+  (dashpots and friction) so that together they neither overshoot nor fall short; see
+  :func:`combined_velocity_change`.
 * Semi-implicit Euler: velocities first, then positions with the new velocities.
 """
 
@@ -51,8 +55,39 @@ def column_speed(
 
 @wp.func
 def column_center(model: Model, i: int) -> float:
-    """Horizontal coordinate of column index ``i``'s centre [m]."""
-    return (float(i) + 0.5) * model.cell_size - model.half_platform
+    """Horizontal coordinate of column index ``i``'s centre [m].
+
+    Measured from the middle of the grid, so mirrored columns lie at exactly opposite
+    coordinates and a mirrored scene is simulated as the exact mirror image."""
+    return (float(i) - 0.5 * float(model.grid_size - 1)) * model.cell_size
+
+
+@wp.func
+def grid_bracket(model: Model, coordinate: float) -> wp.vec4:
+    """The two column centres around ``coordinate`` [m] along one axis, clamped to the
+    outermost ones: (index a, index b - index a = +-1, weight of a, weight of b).
+
+    Computed from the distance to the middle of the grid, with column b the one farther from
+    it, so a mirrored coordinate gives exactly the mirrored columns and weights; only between
+    the two middle columns of an even grid are a and b the lower and the upper one.
+    """
+    half_span = 0.5 * float(model.grid_size - 1)  # outermost centre [cells from the middle]
+    middle_gap = half_span - wp.floor(half_span)  # 0.5 on even grids: a gap at the middle
+    s = coordinate / model.cell_size
+    distance = wp.min(wp.abs(s), half_span)
+    clamped = wp.clamp(s, -middle_gap, middle_gap)  # between the middle columns
+    index_a = half_span - middle_gap
+    direction = float(1.0)
+    weight_a = middle_gap - clamped
+    weight_b = middle_gap + clamped
+    if distance >= middle_gap and half_span > middle_gap:
+        near = wp.min(wp.floor(distance - middle_gap), half_span - middle_gap - 1.0) + middle_gap
+        if s < 0.0:
+            direction = -1.0
+        index_a = half_span + direction * near
+        weight_b = distance - near
+        weight_a = 1.0 - weight_b
+    return wp.vec4(index_a, direction, weight_a, weight_b)
 
 
 @wp.func
@@ -67,33 +102,38 @@ def smooth_surface(
 ) -> wp.vec4:
     """Bilinear surface through the column tops: (z, dz/dx, dz/dy, dz/dt) at (x, y).
 
-    Between the outermost column centres and the platform edge the surface is flat.
+    Between the outermost column centres and the platform edge the surface is flat. The four
+    corners are summed in an order that a mirror image or the transpose only permutes within
+    its pairs, so mirrored scenes see exactly mirrored surfaces.
     """
-    gmax = float(model.grid_size - 1)
-    u = (x + model.half_platform) / model.cell_size - 0.5
-    v = (y + model.half_platform) / model.cell_size - 0.5
-    uc = wp.clamp(u, 0.0, gmax)
-    vc = wp.clamp(v, 0.0, gmax)
-    i0 = wp.min(int(wp.floor(uc)), model.grid_size - 2)
-    j0 = wp.min(int(wp.floor(vc)), model.grid_size - 2)
-    tu = uc - float(i0)
-    tv = vc - float(j0)
-    z00 = column_top(model, height_prev, height, e, j0, i0, frac)
-    z10 = column_top(model, height_prev, height, e, j0, i0 + 1, frac)
-    z01 = column_top(model, height_prev, height, e, j0 + 1, i0, frac)
-    z11 = column_top(model, height_prev, height, e, j0 + 1, i0 + 1, frac)
-    s00 = column_speed(model, height_prev, height, e, j0, i0)
-    s10 = column_speed(model, height_prev, height, e, j0, i0 + 1)
-    s01 = column_speed(model, height_prev, height, e, j0 + 1, i0)
-    s11 = column_speed(model, height_prev, height, e, j0 + 1, i0 + 1)
-    z = (1.0 - tv) * ((1.0 - tu) * z00 + tu * z10) + tv * ((1.0 - tu) * z01 + tu * z11)
-    speed = (1.0 - tv) * ((1.0 - tu) * s00 + tu * s10) + tv * ((1.0 - tu) * s01 + tu * s11)
+    bx = grid_bracket(model, x)
+    by = grid_bracket(model, y)
+    ia = int(bx[0])
+    ib = int(bx[0] + bx[1])
+    ja = int(by[0])
+    jb = int(by[0] + by[1])
+    zaa = column_top(model, height_prev, height, e, ja, ia, frac)
+    zba = column_top(model, height_prev, height, e, ja, ib, frac)
+    zab = column_top(model, height_prev, height, e, jb, ia, frac)
+    zbb = column_top(model, height_prev, height, e, jb, ib, frac)
+    saa = column_speed(model, height_prev, height, e, ja, ia)
+    sba = column_speed(model, height_prev, height, e, ja, ib)
+    sab = column_speed(model, height_prev, height, e, jb, ia)
+    sbb = column_speed(model, height_prev, height, e, jb, ib)
+    waa = bx[2] * by[2]
+    wba = bx[3] * by[2]
+    wab = bx[2] * by[3]
+    wbb = bx[3] * by[3]
+    z = (waa * zaa + wbb * zbb) + (wba * zba + wab * zab)
+    speed = (waa * saa + wbb * sbb) + (wba * sba + wab * sab)
+    # the surface is flat beyond the outermost centres
+    half_span = 0.5 * float(model.grid_size - 1) * model.cell_size
     dzdx = float(0.0)
     dzdy = float(0.0)
-    if u > 0.0 and u < gmax:
-        dzdx = ((1.0 - tv) * (z10 - z00) + tv * (z11 - z01)) / model.cell_size
-    if v > 0.0 and v < gmax:
-        dzdy = ((1.0 - tu) * (z01 - z00) + tu * (z11 - z10)) / model.cell_size
+    if wp.abs(x) < half_span:
+        dzdx = bx[1] * (by[2] * (zba - zaa) + by[3] * (zbb - zab)) / model.cell_size
+    if wp.abs(y) < half_span:
+        dzdy = by[1] * (bx[2] * (zab - zaa) + bx[3] * (zbb - zba)) / model.cell_size
     return wp.vec4(z, dzdx, dzdy, speed)
 
 
@@ -270,36 +310,137 @@ def friction_impulse(
     return -magnitude / speed * slip
 
 
+@wp.struct
+class ColumnImpulses:
+    """The column contacts of one sphere in one substep, each computed from the same velocities
+    as if it were the sphere's only contact, summed; and what it takes to combine them."""
+
+    normal: wp.vec3
+    """Sum of the normal (spring and dashpot) impulses [N s]."""
+    approach_damping: wp.vec3
+    """Sum of the dashpot impulses of the approaching contacts [N s]."""
+    damping_share: float
+    """Sum over the approaching contacts of the fraction of their approach the dashpot stops."""
+    friction: wp.vec3
+    """Sum of the friction impulses [N s]."""
+    friction_moment: wp.vec3
+    """Sum of the friction impulses' moments about the sphere's centre [N m s]."""
+    friction_work: float
+    """Sum of friction impulse . slip [J]: the first-order change of kinetic energy (<= 0)."""
+    friction_cone: float
+    """Largest factor on every friction impulse that keeps each within mu * normal impulse."""
+    contacts: float
+    """Number of contacts with friction."""
+    normals: wp.vec3
+    """Sum of their normals."""
+    normal_products: wp.mat33
+    """Sum of the outer products of their normals with themselves."""
+    slips: wp.vec3
+    """Sum of their slip velocities [m/s]."""
+    normal_cross_slips: wp.vec3
+    """Sum of their normals crossed with their slip velocities [m/s]."""
+
+
 @wp.func
-def column_contact_impulse(
-    model: Model, v: wp.vec3, w: wp.vec3, n: wp.vec3, overlap: float, surface_velocity: wp.vec3
-) -> wp.spatial_vector:
-    """Velocity changes (linear xyz, angular xyz) from one sphere-column contact."""
+def new_column_impulses() -> ColumnImpulses:
+    impulses = ColumnImpulses()
+    impulses.friction_cone = 1.0e30
+    return impulses
+
+
+@wp.func
+def add_column_contact(
+    model: Model,
+    impulses: ColumnImpulses,
+    v: wp.vec3,
+    w: wp.vec3,
+    n: wp.vec3,
+    overlap: float,
+    surface_velocity: wp.vec3,
+) -> ColumnImpulses:
+    """Adds one sphere-column contact's impulses, computed from the velocities ``v``, ``w``."""
     r = model.sphere_radius
     dt = model.substep_dt
     arm = -r * n
     rel = v + wp.cross(w, arm) - surface_velocity
-    force = model.contact_stiffness * overlap - model.column_contact_damping * wp.dot(rel, n)
+    normal_speed = wp.dot(rel, n)
+    damping = -model.column_contact_damping * normal_speed
+    force = model.contact_stiffness * overlap + damping
     if force <= 0.0:
-        return wp.spatial_vector()
+        return impulses
     jn = force * dt
-    dv = n * (jn / model.sphere_mass)
-    slip = rel - wp.dot(rel, n) * n
-    inv = 1.0 / model.sphere_mass + r * r / model.sphere_inertia
-    jt = friction_impulse(model, slip, inv, jn)
-    dv = dv + jt / model.sphere_mass
-    dw = wp.cross(arm, jt) / model.sphere_inertia
+    impulses.normal = impulses.normal + n * jn
+    # an approaching contact's force is never clipped, so its dashpot part can be scaled later
+    if normal_speed < 0.0:
+        impulses.approach_damping = impulses.approach_damping + n * (damping * dt)
+        impulses.damping_share = (
+            impulses.damping_share + model.column_contact_damping * dt / model.sphere_mass
+        )
+    slip = rel - normal_speed * n
+    jt = friction_impulse(model, slip, 1.0 / model.sphere_mass + r * r / model.sphere_inertia, jn)
+    impulses.friction = impulses.friction + jt
+    impulses.friction_moment = impulses.friction_moment + wp.cross(arm, jt)
+    impulses.friction_work = impulses.friction_work + wp.dot(jt, slip)
+    magnitude = wp.length(jt)
+    if magnitude > 0.0:
+        impulses.friction_cone = wp.min(impulses.friction_cone, model.friction * jn / magnitude)
+    impulses.contacts = impulses.contacts + 1.0
+    impulses.normals = impulses.normals + n
+    impulses.normal_products = impulses.normal_products + wp.outer(n, n)
+    impulses.slips = impulses.slips + slip
+    impulses.normal_cross_slips = impulses.normal_cross_slips + wp.cross(n, slip)
+    return impulses
+
+
+@wp.func
+def combined_velocity_change(model: Model, impulses: ColumnImpulses) -> wp.spatial_vector:
+    """Velocity changes (linear xyz, angular xyz) from a sphere's column contacts together.
+
+    Springs add up as they are. The dashpots of several approaching contacts that would
+    together stop more than the whole approach are scaled down to stop just it. The friction
+    impulses, each the one that would stop its own contact's slip (capped by Coulomb), are
+    summed and the sum is scaled by the factor that best stops all the slips at once: an exact
+    line search along it (least squares over the contacts' slips), which neither undershoots
+    where contacts share a direction of motion nor overshoots where they cross. The factor
+    stays within every contact's friction cone and where kinetic energy cannot grow; for a
+    single contact it is one, which is that contact's own friction.
+    """
+    m = model.sphere_mass
+    inertia = model.sphere_inertia
+    r = model.sphere_radius
+    damping_scale = 1.0 / wp.max(impulses.damping_share, 1.0)
+    normal_dv = (impulses.normal - (1.0 - damping_scale) * impulses.approach_damping) / m
+    dv = impulses.friction / m
+    dw = impulses.friction_moment / inertia
+    # The factor minimises the sum over the contacts of |s_i + f c_i|^2: s_i the slip left
+    # after the normal impulses (which already stop much of it where normals are tilted
+    # against each other), c_i = dv - r dw x n_i the contact point's velocity change per unit
+    # factor. Its tangential part should cancel the slip; its normal part, which pushes the
+    # sphere into or off its other contacts, is a cost. The sums of s_i . c_i and |c_i|^2
+    # follow from the contacts' sums of n, n n^T, slip and n x slip.
+    products = impulses.normal_products
+    along = (
+        wp.dot(impulses.slips, dv)
+        - r * wp.dot(dw, impulses.normal_cross_slips)
+        + impulses.contacts * wp.dot(normal_dv, dv)
+        - r * wp.dot(normal_dv, wp.cross(dw, impulses.normals))
+        - wp.dot(normal_dv, products * dv)
+    )
+    curvature = (
+        impulses.contacts * (wp.dot(dv, dv) + r * r * wp.dot(dw, dw))
+        - 2.0 * r * wp.dot(impulses.normals, wp.cross(dv, dw))
+        - r * r * wp.dot(dw, products * dw)
+    )
+    scale = float(0.0)
+    if curvature > 0.0:
+        # kinetic energy changes by scale * work + scale^2 * energy / 2 after the normal impulses
+        work = impulses.friction_work + wp.dot(impulses.friction, normal_dv)
+        energy = m * wp.dot(dv, dv) + inertia * wp.dot(dw, dw)
+        limit = wp.min(impulses.friction_cone, -2.0 * work / energy)
+        scale = wp.clamp(-along / curvature, 0.0, wp.max(limit, 0.0))
+    dv = normal_dv + scale * dv
+    dw = scale * dw
     return wp.spatial_vector(dv[0], dv[1], dv[2], dw[0], dw[1], dw[2])
-
-
-@wp.func
-def apply_impulse(v: wp.vec3, dvw: wp.spatial_vector) -> wp.vec3:
-    return v + wp.vec3(dvw[0], dvw[1], dvw[2])
-
-
-@wp.func
-def apply_angular(w: wp.vec3, dvw: wp.spatial_vector) -> wp.vec3:
-    return w + wp.vec3(dvw[3], dvw[4], dvw[5])
 
 
 @wp.kernel
@@ -362,6 +503,9 @@ def substep(
 
     v = v + wp.vec3(0.0, 0.0, -model.gravity * dt)
 
+    # column contacts, all from the same velocities: the result does not depend on the order in
+    # which they are visited
+    impulses = new_column_impulses()
     half = model.half_platform
     if model.column_shape == SHAPE_BOX or model.column_shape == SHAPE_ELLIPSOID:
         g = model.grid_size
@@ -394,20 +538,31 @@ def substep(
                         surface_velocity = wp.vec3(
                             0.0, 0.0, column_speed(model, height_prev, height, e, iy, ix)
                         )
-                        dvw = column_contact_impulse(
-                            model, v, w, wp.vec3(nd[0], nd[1], nd[2]), overlap, surface_velocity
+                        impulses = add_column_contact(
+                            model,
+                            impulses,
+                            v,
+                            w,
+                            wp.vec3(nd[0], nd[1], nd[2]),
+                            overlap,
+                            surface_velocity,
                         )
-                        v = apply_impulse(v, dvw)
-                        w = apply_angular(w, dvw)
     elif wp.abs(p[0]) < half + r and wp.abs(p[1]) < half + r:
         sc = smooth_contact(model, height_prev, height, e, p, frac)
         overlap = r - sc[3]
         if overlap > 0.0:
-            dvw = column_contact_impulse(
-                model, v, w, wp.vec3(sc[0], sc[1], sc[2]), overlap, wp.vec3(0.0, 0.0, sc[4])
+            impulses = add_column_contact(
+                model,
+                impulses,
+                v,
+                w,
+                wp.vec3(sc[0], sc[1], sc[2]),
+                overlap,
+                wp.vec3(0.0, 0.0, sc[4]),
             )
-            v = apply_impulse(v, dvw)
-            w = apply_angular(w, dvw)
+    dvw = combined_velocity_change(model, impulses)
+    v = v + wp.vec3(dvw[0], dvw[1], dvw[2])
+    w = w + wp.vec3(dvw[3], dvw[4], dvw[5])
 
     v = v / (1.0 + model.linear_damping * dt)
     w = w / (1.0 + model.angular_damping * dt)
