@@ -7,7 +7,7 @@ and a mean over the agents present, so they take any number of agents and ignore
 
 - :class:`CentralValue` and :class:`CounterfactualBaseline` are TensorDict modules for any
   environment with flat per-agent observations ``[*B, K, O]``, built from plain sizes: what to
-  hand :class:`~terrashift_rl.objectives.MAPOCALoss` in another TorchRL project.
+  hand :class:`~terrashift_rl.objectives.mapoca.MAPOCALoss` in another TorchRL project.
 - :class:`CentralValueHead` and :class:`CounterfactualBaselineHead` are the same networks on the
   per-agent embeddings of TerraShift's shared trunk, sized by a :class:`TerraShiftModelConfig`.
 - :class:`AttentionValue` and :class:`AttentionBaseline` are the plain ``nn.Module`` both
@@ -220,7 +220,7 @@ class CentralValue(TensorDictModule):
 
     Reads ``(group, "observation")`` [*B, K, O] and, if there, ``(group, "mask")`` [*B, K]
     (True where the agent is present; absent means all present); writes ``"state_value"``
-    [*B, 1], the keys :class:`~terrashift_rl.objectives.MAPOCALoss` reads by default (VMAS's
+    [*B, 1], the keys :class:`~terrashift_rl.objectives.mapoca.MAPOCALoss` reads by default (VMAS's
     too). Each agent's observation goes through an MLP, then :class:`AttentionValue` pools the
     team: no fixed number of agents, no order among them.
 
