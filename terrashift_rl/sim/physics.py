@@ -459,8 +459,8 @@ def substep(
 ):
     """Advances every sphere by one substep. Launch dim: [num_envs, M].
 
-    ``frac`` is the fraction of the tick reached at the end of this substep; column tops are
-    interpolated to it.
+    ``frac`` is the fraction of the tick reached in the middle of this substep; column tops
+    are interpolated to it.
     """
     e, j = wp.tid()
     p = position_in[e, j]

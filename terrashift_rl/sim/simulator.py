@@ -273,12 +273,15 @@ class Simulator:
         substeps = self.config.substeps
         for s in range(substeps):
             src, dst = (current, scratch) if s % 2 == 0 else (scratch, current)
+            # the columns are placed where they are in the middle of the substep: a contact's
+            # impulse over the substep is that of their mean position over it, so a column that
+            # starts or stops with the tick is not felt a whole substep early or late
             wp.launch(
                 physics.substep,
                 dim=(self.num_envs, self.config.num_objects),
                 inputs=[
                     m,
-                    (s + 1) / substeps,
+                    (s + 0.5) / substeps,
                     d.column_height_prev,
                     d.column_height,
                     d.sphere_active,

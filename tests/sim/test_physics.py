@@ -394,6 +394,47 @@ def test_energy_never_grows_on_a_static_field(shape, restitution):
 
 # --- moving columns and the order of contacts ----------------------------------------------
 
+# A 3 x 3 patch of columns around the platform's centre column (7, 7) of the 15 x 15 grid
+PATCH = slice(6, 9)
+# The hollow inside the patch, where all four supporting columns rise, and one on its edge,
+# where two of the four rise
+PATCH_HOLLOWS = {"centre": (7, 7), "edge": (8, 7)}
+# Refining the step 16-fold must move the peak of a throw by less than this fraction of it
+THROW_CONVERGENCE = 0.05
+
+
+def throw_height(column_speed: float, hollow: str, *, substeps: int) -> float:
+    """How high [m] a sphere resting in one of the ``PATCH_HOLLOWS`` flies when the patch rises
+    at ``column_speed`` [m/s] for one tick: its peak height minus its resting height."""
+    sc = scene("ellipsoid", substeps=substeps)
+    cfg = sc.config
+    x, y = corner(cfg, *PATCH_HOLLOWS[hollow])
+    sc.place_spheres(torch.tensor([[x, y, REST_TOP + RADIUS + 0.002]]))
+    sc.step(60)  # settle
+    rest = sc.sphere_position[0, 0, 2].item()
+    heights = torch.zeros(cfg.grid_size, cfg.grid_size)
+    heights[PATCH, PATCH] = column_speed / cfg.physics_hz
+    sc.set_column_heights(heights)
+    peak = rest
+    for _ in range(45):  # 0.75 s: past the top of the highest throw
+        sc.step(1)
+        peak = max(peak, sc.sphere_position[0, 0, 2].item())
+    return peak - rest
+
+
+@pytest.mark.parametrize("hollow", sorted(PATCH_HOLLOWS))
+@pytest.mark.parametrize("column_speed", [1.8, 3.6])
+def test_throw_by_a_rising_patch_converges_at_the_default_step(column_speed, hollow):
+    default = TerraShiftConfig().substeps
+    coarse = throw_height(column_speed, hollow, substeps=default)
+    fine = throw_height(column_speed, hollow, substeps=16 * default)
+    error = coarse / fine - 1.0
+    assert abs(error) < THROW_CONVERGENCE, (
+        f"{column_speed} m/s, {hollow}: {coarse:.4f} m at {default} substeps, {fine:.4f} m at "
+        f"{16 * default} ({error:+.1%})"
+    )
+
+
 # Lateral speed of a sphere lifted by columns symmetric around it
 SYMMETRIC_LATERAL_SPEED = 1e-3  # m/s
 
