@@ -16,6 +16,8 @@ and a mean over the agents present, so they take any number of agents and ignore
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
@@ -56,14 +58,22 @@ def _mlp(
 
 
 class _AttentionPool(nn.Module):
-    """Residual self-attention over a set, masked mean over it, MLP -> 1."""
+    """Encoders named by ``encoders``, then residual self-attention over a set of encoded
+    elements, masked mean over it, MLP -> 1."""
 
-    attention: ResidualSelfAttention
-    mlp: nn.Sequential
-
-    def _add_pool(
-        self, width: int, num_heads: int, hidden_dim: int, *, depth: int, dropout: float
+    def __init__(
+        self,
+        encoders: dict[str, nn.Module],
+        *,
+        width: int,
+        num_heads: int,
+        hidden_dim: int,
+        depth: int = 1,
+        dropout: float = 0.0,
     ) -> None:
+        super().__init__()
+        for name, encoder in encoders.items():
+            self.add_module(name, encoder)
         self.attention = ResidualSelfAttention(width, num_heads, dropout=dropout)
         self.mlp = _mlp(width, hidden_dim, 1, depth=depth, dropout=dropout)
 
@@ -82,11 +92,11 @@ class AttentionValue(_AttentionPool):
         encoder: maps one agent's features [..., F] to [..., width].
 
     Keyword Args:
-        width: width of the encoded agents and of the MLP's hidden layers.
-        num_heads: attention heads; divides ``width``.
-        hidden_dim: width of the MLP's hidden layers after pooling.
-        depth: hidden layers of that MLP.
-        dropout: dropout in backpropagated passes only (see :mod:`~terrashift_rl.modules.layers`).
+        sizes: ``width`` (of the encoded agents, required), ``num_heads`` (attention heads,
+            dividing ``width``; required), ``hidden_dim`` (width of the hidden layers of the MLP
+            after pooling; required), ``depth`` (its hidden layers, 1 by default) and
+            ``dropout`` (in backpropagated passes only, see
+            :mod:`~terrashift_rl.modules.layers`; 0 by default).
 
     Examples:
         >>> value = AttentionValue(nn.Linear(5, 16), width=16, num_heads=2, hidden_dim=32)
@@ -94,19 +104,10 @@ class AttentionValue(_AttentionPool):
         torch.Size([4, 1])
     """
 
-    def __init__(
-        self,
-        encoder: nn.Module,
-        *,
-        width: int,
-        num_heads: int,
-        hidden_dim: int,
-        depth: int = 1,
-        dropout: float = 0.0,
-    ) -> None:
-        super().__init__()
-        self.encoder = encoder
-        self._add_pool(width, num_heads, hidden_dim, depth=depth, dropout=dropout)
+    encoder: nn.Module
+
+    def __init__(self, encoder: nn.Module, **sizes: Any) -> None:
+        super().__init__({"encoder": encoder}, **sizes)
 
     def forward(self, features: Tensor, agent_mask: Tensor | None = None) -> Tensor:
         """Value [..., 1] of per-agent features [..., K, F] (mask [..., K], True = present)."""
@@ -127,11 +128,8 @@ class AttentionBaseline(_AttentionPool):
         other_state_action: maps one agent's features and action [..., F + A] to [..., width].
 
     Keyword Args:
-        width: width of the encoded set.
-        num_heads: attention heads; divides ``width``.
-        hidden_dim: width of the MLP's hidden layers after pooling.
-        depth: hidden layers of that MLP.
-        dropout: dropout in backpropagated passes only.
+        sizes: ``width``, ``num_heads``, ``hidden_dim``, ``depth`` and ``dropout``, as for
+            :class:`AttentionValue`.
 
     Examples:
         >>> baseline = AttentionBaseline(
@@ -140,21 +138,13 @@ class AttentionBaseline(_AttentionPool):
         torch.Size([4, 3, 1])
     """
 
-    def __init__(
-        self,
-        own_state: nn.Module,
-        other_state_action: nn.Module,
-        *,
-        width: int,
-        num_heads: int,
-        hidden_dim: int,
-        depth: int = 1,
-        dropout: float = 0.0,
-    ) -> None:
-        super().__init__()
-        self.own_state = own_state
-        self.other_state_action = other_state_action
-        self._add_pool(width, num_heads, hidden_dim, depth=depth, dropout=dropout)
+    own_state: nn.Module
+    other_state_action: nn.Module
+
+    def __init__(self, own_state: nn.Module, other_state_action: nn.Module, **sizes: Any) -> None:
+        super().__init__(
+            {"own_state": own_state, "other_state_action": other_state_action}, **sizes
+        )
 
     def forward(self, features: Tensor, action: Tensor, agent_mask: Tensor | None = None) -> Tensor:
         """Baselines [..., K, 1] from features [..., K, F] and actions [..., K, A]."""
