@@ -67,27 +67,19 @@ def grid_bracket(model: Model, coordinate: float) -> wp.vec4:
     """The two column centres around ``coordinate`` [m] along one axis, clamped to the
     outermost ones: (index a, index b - index a = +-1, weight of a, weight of b).
 
-    Computed from the distance to the middle of the grid, with column b the one farther from
-    it, so a mirrored coordinate gives exactly the mirrored columns and weights; only between
-    the two middle columns of an even grid are a and b the lower and the upper one.
+    Computed on the positive side from ``|coordinate|`` and mirrored back, so a mirrored
+    coordinate gives exactly the mirrored columns and the same weights.
     """
-    half_span = 0.5 * float(model.grid_size - 1)  # outermost centre [cells from the middle]
-    middle_gap = half_span - wp.floor(half_span)  # 0.5 on even grids: a gap at the middle
-    s = coordinate / model.cell_size
-    distance = wp.min(wp.abs(s), half_span)
-    clamped = wp.clamp(s, -middle_gap, middle_gap)  # between the middle columns
-    index_a = half_span - middle_gap
+    last = float(model.grid_size - 1)
+    u = wp.min(wp.abs(coordinate) / model.cell_size + 0.5 * last, last)  # in column indices
+    lower = wp.min(wp.floor(u), last - 1.0)
+    weight_b = u - lower
+    index_a = lower
     direction = float(1.0)
-    weight_a = middle_gap - clamped
-    weight_b = middle_gap + clamped
-    if distance >= middle_gap and half_span > middle_gap:
-        near = wp.min(wp.floor(distance - middle_gap), half_span - middle_gap - 1.0) + middle_gap
-        if s < 0.0:
-            direction = -1.0
-        index_a = half_span + direction * near
-        weight_b = distance - near
-        weight_a = 1.0 - weight_b
-    return wp.vec4(index_a, direction, weight_a, weight_b)
+    if coordinate < 0.0:
+        index_a = last - lower
+        direction = -1.0
+    return wp.vec4(index_a, direction, 1.0 - weight_b, weight_b)
 
 
 @wp.func
