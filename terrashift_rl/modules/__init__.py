@@ -1,4 +1,5 @@
-"""TerraShift networks as TensorDict modules: shared trunk, Beta actor, MA-POCA critics.
+"""TerraShift networks as TensorDict modules: shared trunk, Beta actor, MA-POCA critics, and
+IPPO's per-agent value.
 
 For another environment with flat per-agent observations, :class:`CentralValue` and
 :class:`CounterfactualBaseline` are MA-POCA's critics built from plain sizes. For TerraShift,
@@ -20,6 +21,7 @@ from terrashift_rl.modules.critics import (
 from terrashift_rl.modules.distributions import ScaledBeta
 from terrashift_rl.modules.entities import AgentEncoder, ObjectEncoder
 from terrashift_rl.modules.heightmap import AdaptiveSpatialTokenizer, HeightmapEncoder
+from terrashift_rl.modules.independent import AgentValueHead, make_agent_value_head
 from terrashift_rl.modules.networks import TerraShiftNetworks, make_terrashift_networks
 from terrashift_rl.modules.policy import BetaPolicyHead
 from terrashift_rl.modules.trunk import SharedEmbeddingNetwork, TerraShiftTrunk
@@ -27,6 +29,7 @@ from terrashift_rl.modules.trunk import SharedEmbeddingNetwork, TerraShiftTrunk
 __all__ = [
     "AdaptiveSpatialTokenizer",
     "AgentEncoder",
+    "AgentValueHead",
     "AttentionBaseline",
     "AttentionValue",
     "BetaPolicyHead",
@@ -42,5 +45,6 @@ __all__ = [
     "TerraShiftNetworks",
     "TerraShiftTrunk",
     "keys",
+    "make_agent_value_head",
     "make_terrashift_networks",
 ]

@@ -72,6 +72,8 @@ class TerraShiftNetworks(nn.Module):
         policy_head: writes the Beta concentrations from the embedding.
         value_head: writes ``state_value`` from the embedding.
         baseline_head: writes ``("agents", "baseline")`` from the embedding and actions.
+        config: the sizes the networks were built with (what further heads are sized by, e.g.
+            IPPO's :func:`~terrashift_rl.modules.make_agent_value_head`), or ``None``.
     """
 
     def __init__(
@@ -80,8 +82,11 @@ class TerraShiftNetworks(nn.Module):
         policy_head: TensorDictModule,
         value_head: TensorDictModule,
         baseline_head: TensorDictModule,
+        *,
+        config: TerraShiftModelConfig | None = None,
     ) -> None:
         super().__init__()
+        self.config = config
         self.trunk = trunk
         self.policy_head = policy_head
         self.value_head = value_head
@@ -213,4 +218,4 @@ def make_terrashift_networks(
         in_keys=[keys.AGENT_EMBEDDING, keys.ACTION, keys.AGENT_MASK],
         out_keys=[keys.BASELINE],
     )
-    return TerraShiftNetworks(trunk, policy_head, value_head, baseline_head)
+    return TerraShiftNetworks(trunk, policy_head, value_head, baseline_head, config=config)
