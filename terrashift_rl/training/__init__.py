@@ -1,9 +1,12 @@
-"""Training utilities the recipes compose: the MA-POCA trainer, schedules, checkpoints."""
+"""Training utilities the recipes compose: the on-policy trainer and its algorithms (MA-POCA,
+MAPPO, IPPO), schedules, checkpoints."""
 
+from terrashift_rl.training.algorithms import ALGORITHMS, Algorithm
 from terrashift_rl.training.checkpoint import load_checkpoint, save_checkpoint
 from terrashift_rl.training.schedules import LinearSchedule
 from terrashift_rl.training.trainer import (
     MAPOCATrainer,
+    OnPolicyTrainer,
     TrainConfig,
     concentration_metrics,
     episode_metrics,
@@ -12,8 +15,11 @@ from terrashift_rl.training.trainer import (
 )
 
 __all__ = [
+    "ALGORITHMS",
+    "Algorithm",
     "LinearSchedule",
     "MAPOCATrainer",
+    "OnPolicyTrainer",
     "TrainConfig",
     "concentration_metrics",
     "episode_metrics",

@@ -1,12 +1,15 @@
-"""MA-POCA training on batched TerraShift environments: collect, estimate, update, checkpoint.
+"""On-policy training on batched TerraShift environments: collect, estimate, update, checkpoint.
 
-:class:`MAPOCATrainer` owns the environment, the networks, the loss and the optimiser. One
-iteration collects ``steps_per_iteration`` decisions in every environment with the stochastic
-policy (dropout off), runs the value-estimation pass once (GAE from the centralised value,
-counterfactual baselines from the collection-time parameters), then runs ``epochs`` passes of
-shuffled mini-batches. Mini-batches are whole per-environment sequences, and the GRU runs over
+:class:`OnPolicyTrainer` owns the environment, the networks, the loss and the optimiser; the loss
+is the algorithm ``train.algo`` names (:mod:`terrashift_rl.training.algorithms`: MA-POCA, MAPPO
+or IPPO on the same trunk and policy head). One iteration collects ``steps_per_iteration``
+decisions in every environment with the stochastic policy (dropout off), runs the algorithm's
+value-estimation pass once with the collection-time parameters (for MA-POCA, GAE from the
+centralised value and counterfactual baselines), then runs ``epochs`` passes of shuffled
+mini-batches. Mini-batches are whole per-environment sequences, and the GRU runs over
 them from the state stored at each sequence start (torchrl's recurrent mode). On CUDA the
-actor's step and each mini-batch update are replayed as CUDA graphs (``cuda_graphs``).
+actor's step and each mini-batch update are replayed as CUDA graphs (``cuda_graphs``); the
+update only where the algorithm's loss runs without host synchronisation (MA-POCA's).
 
 The collection loop is written out (``env.step_and_maybe_reset``) rather than delegated to a
 collector, because a checkpoint has to hold the tensordict carried between iterations and the
@@ -28,14 +31,13 @@ from tensordict import TensorDictBase
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import set_recurrent_mode
-from torchrl.objectives import ValueEstimators
 
 from terrashift_rl.envs import TerraShiftEnv
 from terrashift_rl.envs.baselines import ScriptedHeuristicPolicy
 from terrashift_rl.modules import TerraShiftNetworks, keys
-from terrashift_rl.objectives import MAPOCALoss, ValueNormalizer
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.sim.types import ACTION_NAMES
+from terrashift_rl.training.algorithms import ALGORITHMS
 from terrashift_rl.training.graphs import CudaGraphed
 from terrashift_rl.training.schedules import LinearSchedule
 
@@ -52,7 +54,7 @@ _KL_STEP = 1.5
 
 @dataclass
 class TrainConfig:
-    """Hyper-parameters of :class:`MAPOCATrainer` (a Hydra structured config).
+    """Hyper-parameters of :class:`OnPolicyTrainer` (a Hydra structured config).
 
     Start/end pairs are linear schedules over ``schedule_iterations`` updates. The defaults
     (2,048 environments, 2 epochs of 8 mini-batches, learning rates 3e-4 / 6e-4, a constant
@@ -61,6 +63,10 @@ class TrainConfig:
     over 5,000-10,000 updates, entropy 0.005 -> 0.001) suit them poorly (docs/experiments.md).
     """
 
+    algo: str = "mapoca"
+    """The algorithm, a key of :data:`~terrashift_rl.training.algorithms.ALGORITHMS`:
+    ``mapoca``, ``mappo`` or ``ippo``. Every other setting means the same for each, except
+    ``baseline_coeff`` (MA-POCA's baselines only) and the teacher (MA-POCA only)."""
     num_envs: int = 2048
     """Environments stepped together."""
     steps_per_iteration: int = 32
@@ -76,13 +82,14 @@ class TrainConfig:
     lr_trunk_policy: float = 3.0e-4
     """AdamW learning rate of the trunk and the policy head at the start."""
     lr_value_baseline: float = 6.0e-4
-    """AdamW learning rate of the value and baseline heads at the start."""
+    """AdamW learning rate of the critics at the start (MA-POCA's value and baseline heads,
+    MAPPO's value head, IPPO's per-agent value head)."""
     lr_schedule: str = "linear"
     """How the trunk and policy's learning rate moves: ``linear`` from its start to
     ``lr_end_factor`` times it over ``schedule_iterations`` updates; ``adaptive`` so that the
     policy's KL divergence per update stays near ``desired_kl`` (RSL-RL's rule: after each
     mini-batch's KL estimate, divide by 1.5 above twice the target, multiply by 1.5 below half
-    of it), within [lr_min, lr_max]. The value and baseline heads' rate is linear either way."""
+    of it), within [lr_min, lr_max]. The critics' rate is linear either way."""
     lr_end_factor: float = 0.1
     """Linear schedules end at this fraction of their learning rate's start."""
     desired_kl: float = 0.01
@@ -113,15 +120,15 @@ class TrainConfig:
     teacher_iterations: int = 200
     """Updates over which the teacher's weight falls linearly to ``teacher_coeff_end``."""
     critic_warmup_iterations: int = 0
-    """Iterations at the start of a run that train only the value and baseline heads, with the
+    """Iterations at the start of a run that train only the critics, with the
     trunk and policy frozen: a pretrained policy then meets a new scene with critics fitted to
     it (and return statistics re-estimated) instead of advantages from miscalibrated ones."""
     value_coeff: float = 1.0
     """Weight of the value loss."""
     baseline_coeff: float = 0.5
-    """Weight of the baseline loss."""
+    """Weight of the baseline loss (MA-POCA)."""
     normalize_value: bool = True
-    """Train the value and baseline heads on running-normalised returns (ValueNormalizer)."""
+    """Train the critics on running-normalised returns (ValueNormalizer)."""
     value_norm_decay: float = 0.99
     """Weight of the old return statistics at each iteration."""
     bf16: bool = False
@@ -149,6 +156,9 @@ class TrainConfig:
     def validate(self) -> None:
         """Raises ``ValueError`` naming the first setting of the wrong type or outside its
         allowed range, or an impossible combination, saying what to change."""
+        if not isinstance(self.algo, str) or self.algo not in ALGORITHMS:
+            choices = ", ".join(list(ALGORITHMS)[:-1]) + f" or {list(ALGORITHMS)[-1]}"
+            raise ValueError(f"train.algo must be one of {choices}, got {self.algo!r}")
         for name in (
             "num_envs",
             "steps_per_iteration",
@@ -211,6 +221,16 @@ class TrainConfig:
                 f"({self.num_envs}): a mini-batch holds whole environment sequences, so use at "
                 f"most {self.num_envs} mini-batches or more environments"
             )
+        if self.algo != "mapoca" and self.teacher_coeff:
+            raise ValueError(
+                f"train.teacher_coeff is {self.teacher_coeff} but train.algo={self.algo} has no "
+                "teacher term (only mapoca has): set train.teacher_coeff=0 or train.algo=mapoca"
+            )
+        if self.algo != "mapoca" and not self.value_coeff:
+            raise ValueError(
+                f"train.value_coeff is 0 but train.algo={self.algo} learns its advantages from "
+                "the value: set train.value_coeff > 0"
+            )
         if self.teacher_coeff_end and not self.teacher_coeff:
             raise ValueError(
                 f"train.teacher_coeff_end is {self.teacher_coeff_end} but train.teacher_coeff "
@@ -265,8 +285,14 @@ def make_training_env(
     return TransformedEnv(base, Compose(InitTracker(), primer))
 
 
-class MAPOCATrainer:
-    """Collects and learns; holds everything a checkpoint needs.
+class OnPolicyTrainer:
+    """Collects and learns with the algorithm ``config.algo`` names; holds everything a
+    checkpoint needs.
+
+    Attributes:
+        algorithm: the loss and what the loop needs of it
+            (:class:`~terrashift_rl.training.algorithms.Algorithm`).
+        loss: ``algorithm.loss``.
 
     Args:
         env: a batched environment from :func:`make_training_env`.
@@ -280,38 +306,18 @@ class MAPOCATrainer:
         self.networks = networks
         self.config = config
         self.device = env.device
+        self.algorithm = ALGORITHMS[config.algo](networks, config)
+        self.loss = self.algorithm.loss
         if config.compile:
             networks.compile_networks()
-        normalizer = ValueNormalizer(config.value_norm_decay) if config.normalize_value else None
-        self.loss = MAPOCALoss(
-            networks.actor,
-            networks.value_head,
-            networks.baseline_head,
-            clip_epsilon=config.clip_epsilon_start,
-            entropy_coeff=config.entropy_coeff_start,
-            value_coeff=config.value_coeff,
-            baseline_coeff=config.baseline_coeff,
-            clip_value=config.value_clip_start,
-            value_normalizer=normalizer,
-            teacher_coeff=config.teacher_coeff or None,
-        ).to(self.device)
+            for head in self.algorithm.networks.values():
+                head.module.compile()
         self.teacher = (
             ScriptedHeuristicPolicy(env.base_env.config) if config.teacher_coeff else None
         )
-        # the estimation pass runs no bigger pieces than a training mini-batch: same memory bound
-        self.loss.make_value_estimator(
-            ValueEstimators.GAE,
-            gamma=config.gamma,
-            lmbda=config.lmbda,
-            max_batch=math.ceil(config.num_envs / config.minibatches),
-            reuse_root_values=True,  # collected trajectories: next[t] is the root of t + 1
-        )
         policy_parameters = [*networks.trunk.parameters(), *networks.policy_head.parameters()]
         self._policy_parameters = policy_parameters
-        critic_parameters = [
-            *networks.value_head.parameters(),
-            *networks.baseline_head.parameters(),
-        ]
+        critic_parameters = [p for critic in self.algorithm.critics for p in critic.parameters()]
         self.optimizer = torch.optim.AdamW(
             [
                 {"params": policy_parameters, "lr": config.lr_trunk_policy},
@@ -407,13 +413,13 @@ class MAPOCATrainer:
         config = self.config
         warmup = self.iteration < config.critic_warmup_iterations
         self._apply_schedules()
-        self.networks.eval()
+        self._train_mode(False)
         start = time.perf_counter()
         with self._autocast():
-            self.loss.value_estimator(data)
+            self.algorithm.estimate(data)
         self._synchronize()
         estimation_seconds = time.perf_counter() - start
-        self.networks.train()
+        self._train_mode(True)
         sums: dict[str, torch.Tensor] = {}
         count = 0
         for _ in range(config.epochs):
@@ -421,12 +427,14 @@ class MAPOCATrainer:
             for index in order.chunk(config.minibatches):
                 step = (len(index), warmup)  # one graph per mini-batch size and kind of step
                 if step not in self._update_steps:
-                    self._update_steps[step] = self._graphed(
-                        self._critic_step if warmup else self._update_step
+                    function = self._critic_step if warmup else self._update_step
+                    self._update_steps[step] = (
+                        self._graphed(function) if self.algorithm.capturable else function
                     )
                 out = self._update_steps[step](data[index])
                 for key, value in out.items():
-                    sums[key] = sums.get(key, 0.0) + value.float()
+                    # per-element diagnostics (torchrl's explained variance, ESS) are averaged
+                    sums[key] = sums.get(key, 0.0) + value.float().mean()
                 count += 1
         metrics = {key: (value / count).item() for key, value in sums.items()}
         metrics["lr_trunk_policy"] = float(self.optimizer.param_groups[0]["lr"])
@@ -448,11 +456,11 @@ class MAPOCATrainer:
         return self._step(out, total, frozen=())
 
     def _critic_step(self, batch: TensorDictBase) -> TensorDictBase:
-        """A gradient step of the value and baseline heads alone: the trunk and the policy, whose
-        parameters get no gradient, are left exactly as they are (AdamW skips them)."""
+        """A gradient step of the critics alone: the trunk and the policy, whose parameters get
+        no gradient, are left exactly as they are (AdamW skips them)."""
         with set_recurrent_mode(True), self._autocast():
             out = self.loss(batch)
-        total = out.get("loss_critic") + out.get("loss_baseline")
+        total = sum(out.get(term) for term in self.algorithm.critic_terms)
         return self._step(out, total, frozen=self._policy_parameters)
 
     def _step(
@@ -478,7 +486,7 @@ class MAPOCATrainer:
         for name, value in metrics.items():
             if (name.startswith("loss_") or name == "grad_norm") and not math.isfinite(value):
                 raise self._non_finite(f"{name} = {value}")
-        parameters = dict(self.networks.named_parameters())
+        parameters = dict(self._named_parameters())
         finite = torch.stack([parameter.isfinite().all() for parameter in parameters.values()])
         if not finite.all():
             first = list(parameters)[int(finite.logical_not().nonzero()[0])]
@@ -492,12 +500,12 @@ class MAPOCATrainer:
 
     # --- checkpoints -----------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
-        """Everything a resumed run needs to continue exactly: weights, optimiser, return
-        statistics, counters, random states, the simulator state and the tensordict carried
-        between iterations."""
-        normalizer = self.loss.value_normalizer
+        """Everything a resumed run needs to continue exactly: weights (:meth:`weights_state_dict`),
+        optimiser, return statistics, counters, random states, the simulator state and the
+        tensordict carried between iterations."""
+        normalizer = self.algorithm.value_normalizer
         return {
-            "networks": self.networks.state_dict(),
+            **self.weights_state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "iteration": self.iteration,
             "env_steps": self.env_steps,
@@ -511,9 +519,15 @@ class MAPOCATrainer:
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restores a :meth:`state_dict` taken from a run with the same settings."""
+        algo = _algo_of(state)
+        if algo != self.config.algo:
+            raise ValueError(
+                f"the checkpoint was trained with train.algo={algo}; resume with the same setting"
+            )
         self.networks.load_state_dict(state["networks"])
+        self.algorithm.networks.load_state_dict(state.get("algorithm_networks", {}))
         self.optimizer.load_state_dict(state["optimizer"])
-        normalizer = self.loss.value_normalizer
+        normalizer = self.algorithm.value_normalizer
         if (normalizer is None) != (state.get("value_normalizer") is None):
             raise ValueError(
                 "the checkpoint was trained with train.normalize_value="
@@ -535,6 +549,27 @@ class MAPOCATrainer:
         # an adaptive rate continues from where the checkpoint's put it
         self._lr_scales[0].fill_(float(self.optimizer.param_groups[0]["lr"]) / self._base_lrs[0])
         self._reset_graphs()  # the optimiser's state tensors are new
+
+    def weights_state_dict(self) -> dict[str, Any]:
+        """The weights that evaluation and finetuning read: ``networks`` (the shared trunk and
+        the heads of :class:`~terrashift_rl.modules.TerraShiftNetworks`, all the actor needs),
+        ``algorithm_networks`` (the algorithm's own, IPPO's per-agent value head; empty for the
+        others) and ``algo``, the algorithm they were trained with."""
+        return {
+            "networks": self.networks.state_dict(),
+            "algorithm_networks": self.algorithm.networks.state_dict(),
+            "algo": self.config.algo,
+        }
+
+    def load_weights(self, state: dict[str, Any]) -> None:
+        """Starts from a checkpoint's weights (finetuning): the shared networks, and the
+        algorithm's own networks where the checkpoint was trained with the same algorithm;
+        otherwise these keep their fresh initialisation. The optimiser, the schedules and the
+        return statistics start afresh. ``state`` is a :meth:`weights_state_dict` or a
+        :meth:`state_dict`, also one written before ``algo`` existed (MA-POCA's)."""
+        self.networks.load_state_dict(state["networks"])
+        if _algo_of(state) == self.config.algo:
+            self.algorithm.networks.load_state_dict(state.get("algorithm_networks", {}))
 
     # --- helpers ---------------------------------------------------------------------------
     def _adapt_learning_rate(self, kl: torch.Tensor) -> None:
@@ -590,6 +625,14 @@ class MAPOCATrainer:
     def _graphed(self, function: Callable[[TensorDictBase], TensorDictBase]) -> Callable:
         return CudaGraphed(function) if self._graphs else function
 
+    def _train_mode(self, mode: bool) -> None:
+        self.networks.train(mode)
+        self.algorithm.networks.train(mode)
+
+    def _named_parameters(self) -> Iterator[tuple[str, torch.nn.Parameter]]:
+        yield from self.networks.named_parameters()
+        yield from self.algorithm.networks.named_parameters(prefix="algorithm_networks")
+
     def _reset_graphs(self) -> None:
         self._actor_step = self._graphed(self._act)
         self._update_steps: dict[tuple[int, bool], Callable] = {}
@@ -603,6 +646,18 @@ class MAPOCATrainer:
     def _synchronize(self) -> None:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
+
+
+MAPOCATrainer = OnPolicyTrainer
+"""The trainer's name from when MA-POCA was its only algorithm."""
+
+
+def _algo_of(state: dict[str, Any]) -> str:
+    """The algorithm a checkpoint was trained with; checkpoints from before ``train.algo``
+    existed are MA-POCA's."""
+    if "algo" in state:
+        return state["algo"]
+    return state.get("train_config", {}).get("algo", "mapoca")
 
 
 def episode_metrics(data: TensorDictBase) -> dict[str, float]:
@@ -640,7 +695,7 @@ def concentration_metrics(data: TensorDictBase) -> dict[str, float]:
 
 
 def iterate_until(
-    trainer: MAPOCATrainer, *, total_env_steps: int, deadline: float | None
+    trainer: OnPolicyTrainer, *, total_env_steps: int, deadline: float | None
 ) -> Iterator[dict[str, float]]:
     """Runs iterations until ``total_env_steps`` or the wall-clock ``deadline``
     (``time.monotonic()`` value) is reached, yielding each iteration's metrics."""

@@ -1,0 +1,257 @@
+"""MA-POCA, MAPPO and IPPO through one trainer: each trains, resumes exactly from a checkpoint and
+finetunes; MAPPO's and IPPO's advantages are GAE's, computed here by hand."""
+
+import dataclasses
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.modules import set_recurrent_mode
+
+from terrashift_rl.modules import TerraShiftModelConfig, keys, make_terrashift_networks
+from terrashift_rl.modules.independent import AGENT_VALUE
+from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.training import (
+    ALGORITHMS,
+    OnPolicyTrainer,
+    TrainConfig,
+    load_checkpoint,
+    make_training_env,
+    save_checkpoint,
+)
+
+ENV = TerraShiftConfig(
+    grid_size=8,
+    num_agents=4,
+    num_objects=2,
+    num_goals=2,
+    spawn_margin=1,
+    max_episode_steps=6,
+    heightmap_resolution=16,
+)
+ALGOS = ("mapoca", "mappo", "ippo")
+# metrics that measure time, not learning
+TIMINGS = ("_seconds", "_per_s")
+
+
+def make_trainer(algo: str, *, seed: int = 0, **train) -> OnPolicyTrainer:
+    torch.manual_seed(seed)
+    networks = make_terrashift_networks(TerraShiftModelConfig.small())
+    config = TrainConfig(algo=algo, num_envs=3, steps_per_iteration=8, minibatches=1, **train)
+    env = make_training_env(ENV, networks, num_envs=3, device=torch.device("cpu"), seed=seed)
+    return OnPolicyTrainer(env, networks, config)
+
+
+def weights(trainer: OnPolicyTrainer) -> dict[str, torch.Tensor]:
+    return {name: p.detach().clone() for name, p in trainer._named_parameters()}
+
+
+def test_the_registry_holds_the_three_algorithms():
+    assert tuple(ALGORITHMS) == ALGOS
+    assert TrainConfig().algo == "mapoca"
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_each_algorithm_trains_its_policy_and_critics(algo):
+    trainer = make_trainer(algo)
+    before = weights(trainer)
+    for _ in range(2):
+        metrics = trainer.train_iteration()
+        losses = {name: value for name, value in metrics.items() if name.startswith("loss_")}
+        assert {"loss_objective", "loss_critic", "loss_entropy"} <= losses.keys()
+        assert all(math.isfinite(value) for value in losses.values()), losses
+        assert math.isfinite(metrics["kl_approx"]) and 0.0 <= metrics["clip_fraction"] <= 1.0
+    after = weights(trainer)
+    critics = {
+        "mapoca": ("value_head.", "baseline_head."),
+        "mappo": ("value_head.",),
+        "ippo": ("algorithm_networks.agent_value_head.",),
+    }
+    for prefix in ("trunk.", "policy_head.", *critics[algo]):
+        assert any(
+            not torch.equal(after[name], before[name]) for name in after if name.startswith(prefix)
+        ), prefix
+    unused = {"mapoca": (), "mappo": ("baseline_head.",), "ippo": ("value_head.", "baseline_head.")}
+    for name in after:
+        if name.startswith(unused[algo]):
+            assert torch.equal(after[name], before[name]), name
+
+
+@pytest.mark.parametrize("algo", ("mappo", "ippo"))
+def test_the_critic_loss_trains_the_shared_trunk_through_the_fresh_embedding(algo):
+    # the critic reads the embedding the actor has just written in the same pass: were it the
+    # stale one stored in the batch, no gradient would reach the trunk from the value loss
+    trainer = make_trainer(algo)
+    data = trainer.collect()
+    trainer.algorithm.estimate(data)
+    trainer._train_mode(True)
+    with set_recurrent_mode(True):
+        out = trainer.loss(data)
+    out["loss_critic"].backward()
+    assert any(
+        p.grad is not None and p.grad.abs().sum() > 0 for p in trainer.networks.trunk.parameters()
+    )
+    assert all(p.grad is None for p in trainer.networks.policy_head.parameters())
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_a_checkpoint_resumes_exactly_where_the_run_would_have_gone(algo, tmp_path):
+    straight = make_trainer(algo)
+    straight.train_iteration()
+    path = save_checkpoint(straight.state_dict(), tmp_path / "last.pt")
+    expected = straight.train_iteration()
+
+    resumed = make_trainer(algo, seed=1)  # other initial weights, scenes and random numbers
+    resumed.load_state_dict(load_checkpoint(path))
+    metrics = resumed.train_iteration()
+    for name, value in expected.items():
+        if not name.endswith(TIMINGS):
+            assert metrics[name] == pytest.approx(value, rel=0, abs=0, nan_ok=True), name
+    straight_weights, resumed_weights = weights(straight), weights(resumed)
+    assert straight_weights.keys() == resumed_weights.keys()
+    for name, value in straight_weights.items():
+        assert torch.equal(resumed_weights[name], value), name
+    normalizer = straight.algorithm.value_normalizer
+    for name, value in normalizer.state_dict().items():
+        assert torch.equal(resumed.algorithm.value_normalizer.state_dict()[name], value), name
+    assert resumed.iteration == straight.iteration == 2
+
+
+def test_an_ippo_checkpoint_holds_its_per_agent_value_head():
+    state = make_trainer("ippo").state_dict()
+    assert state["algo"] == state["train_config"]["algo"] == "ippo"
+    assert any(name.startswith("agent_value_head.") for name in state["algorithm_networks"])
+    assert make_trainer("mapoca").state_dict()["algorithm_networks"] == {}
+
+
+def test_a_checkpoint_written_before_algorithms_existed_resumes_as_mapoca():
+    trainer = make_trainer("mapoca")
+    trainer.train_iteration()
+    state = trainer.state_dict()
+    del state["algo"], state["algorithm_networks"], state["train_config"]["algo"]
+    make_trainer("mapoca").load_state_dict(state)
+    with pytest.raises(ValueError, match="trained with train.algo=mapoca; resume with the same"):
+        make_trainer("mappo").load_state_dict(state)
+
+
+def test_finetuning_keeps_the_algorithms_own_networks_only_from_the_same_algorithm():
+    pretrained = make_trainer("ippo", seed=1).weights_state_dict()
+    finetuned = make_trainer("ippo")
+    finetuned.load_weights(pretrained)
+    for name, value in pretrained["algorithm_networks"].items():
+        assert torch.equal(finetuned.algorithm.networks.state_dict()[name], value), name
+    from_mapoca = make_trainer("ippo")
+    fresh = from_mapoca.algorithm.networks.state_dict()
+    mapoca = make_trainer("mapoca", seed=1).weights_state_dict()
+    del mapoca["algo"]  # as a checkpoint written before algorithms existed
+    from_mapoca.load_weights(mapoca)
+    for name, value in mapoca["networks"].items():
+        assert torch.equal(from_mapoca.networks.state_dict()[name], value), name
+    for name, value in fresh.items():
+        assert torch.equal(from_mapoca.algorithm.networks.state_dict()[name], value), name
+
+
+@pytest.mark.parametrize("algo", ("sac", "MAPPO", 3))
+def test_an_unknown_algorithm_is_refused_naming_the_setting_and_the_choices(algo):
+    refused = rf"^train\.algo must be one of mapoca, mappo or ippo, got {algo!r}$"
+    with pytest.raises(ValueError, match=refused):
+        TrainConfig(algo=algo).validate()
+
+
+@pytest.mark.parametrize(
+    ("setting", "message"),
+    [
+        ({"teacher_coeff": 1.0}, "train.teacher_coeff is 1.0 but train.algo=mappo has no teacher"),
+        ({"value_coeff": 0.0}, "train.value_coeff is 0 but train.algo=mappo"),
+    ],
+)
+def test_settings_only_mapoca_can_use_are_refused_with_another_algorithm(setting, message):
+    TrainConfig(algo="mapoca", **setting).validate()
+    with pytest.raises(ValueError, match=message):
+        TrainConfig(algo="mappo", **setting).validate()
+
+
+def hand_values(trainer: OnPolicyTrainer, data: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
+    """V(s_t) and V(s_{t+1}) per agent, [N, T, K, 1], from the networks run on every element."""
+    networks = trainer.networks
+
+    def per_agent(td: TensorDict) -> torch.Tensor:
+        td = networks.trunk(td.reshape(-1).copy())
+        if trainer.config.algo == "mappo":  # the team value, every agent's
+            team = networks.value_head(td)[keys.STATE_VALUE]
+            return team[:, None, :].expand(-1, ENV.num_agents, 1)
+        return trainer.algorithm.networks["agent_value_head"](td)[AGENT_VALUE]
+
+    shape = (*data.shape, ENV.num_agents, 1)
+    with torch.no_grad():
+        return per_agent(data.exclude("next")).reshape(shape), per_agent(data["next"]).reshape(
+            shape
+        )
+
+
+@pytest.mark.parametrize("normalize_value", [False, True])
+@pytest.mark.parametrize("algo", ("mappo", "ippo"))
+def test_advantages_and_returns_are_gae_per_agent_computed_by_hand(algo, normalize_value):
+    trainer = make_trainer(algo, normalize_value=normalize_value)
+    data = trainer.collect()
+    nxt = data["next"]
+    assert nxt["truncated"].any()  # 8 decisions cross a 6-decision episode's end
+    trainer._train_mode(False)
+    value, next_value = hand_values(trainer, data)
+    reward = nxt["agents", "reward"]  # [N, T, K, 1], each agent holds the team reward
+    done = nxt["done"][..., None, :].float()  # [N, T, 1, 1]: the team's, for every agent
+    terminated = nxt["terminated"][..., None, :].float()
+    gamma, lmbda = trainer.config.gamma, trainer.config.lmbda
+    advantage = torch.zeros_like(value)
+    following = torch.zeros_like(value[:, 0])
+    for t in reversed(range(data.shape[1])):
+        delta = reward[:, t] + gamma * next_value[:, t] * (1 - terminated[:, t]) - value[:, t]
+        following = delta + gamma * lmbda * (1 - done[:, t]) * following
+        advantage[:, t] = following
+    value_target = advantage + value
+    # standardised once per batch over environments and steps, each agent on its own
+    mean = advantage.mean(dim=(0, 1), keepdim=True)
+    std = advantage.std(dim=(0, 1), keepdim=True).clamp_min(1e-4)
+
+    trainer.algorithm.estimate(data)
+    torch.testing.assert_close(data["agents", "advantage"], (advantage - mean) / std)
+    torch.testing.assert_close(data["agents", "state_value"], value)  # the old value, stored
+    stored_target = data["agents", "value_target"]
+    if normalize_value:  # in the critic's units, by the statistics that include these returns
+        normalizer = trainer.algorithm.value_normalizer
+        assert normalizer.weight > 0
+        torch.testing.assert_close(stored_target, normalizer.normalize(value_target))
+    else:
+        torch.testing.assert_close(stored_target, value_target)
+    assert ("next", "agents", "state_value") not in data.keys(include_nested=True)
+    if algo == "mappo":  # one team value, one team advantage
+        team_advantage = data["agents", "advantage"]
+        torch.testing.assert_close(team_advantage, team_advantage[..., :1, :].expand_as(value))
+
+
+def test_swapping_the_algorithm_changes_no_other_setting():
+    config = TrainConfig(num_envs=3, steps_per_iteration=8, minibatches=1)
+    for algo in ALGOS:
+        swapped = dataclasses.replace(config, algo=algo)
+        swapped.validate()
+        differ = {
+            name
+            for name, value in dataclasses.asdict(swapped).items()
+            if dataclasses.asdict(config)[name] != value
+        }
+        assert differ <= {"algo"}
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("algo", ("mappo", "ippo"))
+def test_ppo_algorithms_replay_the_actor_and_update_eagerly_on_cuda(algo):
+    torch.manual_seed(0)
+    networks = make_terrashift_networks(TerraShiftModelConfig.small()).to("cuda")
+    config = TrainConfig(algo=algo, num_envs=8, steps_per_iteration=8, minibatches=2)
+    env = make_training_env(ENV, networks, num_envs=8, device=torch.device("cuda"), seed=0)
+    trainer = OnPolicyTrainer(env, networks, config)
+    for _ in range(3):  # the third collection replays the captured actor step
+        assert math.isfinite(trainer.train_iteration()["loss_total"])
+    assert trainer._actor_step.captured
+    assert not trainer.algorithm.capturable
