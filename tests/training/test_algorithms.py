@@ -95,6 +95,27 @@ def test_the_critic_loss_trains_the_shared_trunk_through_the_fresh_embedding(alg
     assert all(p.grad is None for p in trainer.networks.policy_head.parameters())
 
 
+@pytest.mark.parametrize("algo", ("mappo", "ippo"))
+def test_critic_warmup_and_the_adaptive_learning_rate_work_with_torchrls_losses(algo):
+    # a KL target far above any update's KL: every policy mini-batch raises the rate
+    trainer = make_trainer(
+        algo, critic_warmup_iterations=1, lr_schedule="adaptive", desired_kl=10.0
+    )
+    before = weights(trainer)
+    metrics = trainer.train_iteration()
+    assert metrics["critic_warmup"] == 1.0
+    assert metrics["lr_trunk_policy"] == pytest.approx(3.0e-4)  # no policy step, no adapting
+    after = weights(trainer)
+    for name, value in after.items():
+        if name.startswith(("trunk.", "policy_head.")):
+            assert torch.equal(value, before[name]), name  # bit for bit
+    critic = "value_head." if algo == "mappo" else "algorithm_networks."
+    assert any(not torch.equal(v, before[n]) for n, v in after.items() if n.startswith(critic))
+    metrics = trainer.train_iteration()
+    assert metrics["critic_warmup"] == 0.0
+    assert metrics["lr_trunk_policy"] == pytest.approx(3.0e-4 * 1.5**2)  # two mini-batches
+
+
 @pytest.mark.parametrize("algo", ALGOS)
 def test_a_checkpoint_resumes_exactly_where_the_run_would_have_gone(algo, tmp_path):
     straight = make_trainer(algo)
