@@ -5,15 +5,21 @@
 
 The networks are size-agnostic: the same weights run 15x15 with 8 agents and 30x30 with 16.
 Config: recipes/configs/mapoca_finetune.yaml (the pretraining config with env=finetune).
-Training itself is the pretraining recipe's loop, started from the pretrained weights with a
-fresh optimiser and fresh schedules.
+Training itself is the pretraining recipe's run (:func:`terrashift_rl.training.run.run_training`),
+started from the pretrained weights with a fresh optimiser and fresh schedules.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import hydra
-from mapoca_pretrain import train
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
+
+from terrashift_rl.training.run import register_config_schemas, run_training, size_for_the_machine
+
+register_config_schemas()
 
 
 @hydra.main(version_base=None, config_path="configs", config_name="mapoca_finetune")
@@ -23,7 +29,8 @@ def main(cfg: DictConfig) -> None:
             "finetuning needs run.pretrained=<pretraining checkpoint> (or run.resume=<a "
             "finetuning checkpoint> to continue one)"
         )
-    train(cfg)
+    cfg = size_for_the_machine(cfg, device_key="run.device", defaults_key="run.cpu_defaults")
+    run_training(cfg, run_dir=Path(HydraConfig.get().runtime.output_dir))
 
 
 if __name__ == "__main__":

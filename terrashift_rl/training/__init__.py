@@ -3,6 +3,7 @@ MAPPO, IPPO), schedules, checkpoints."""
 
 from terrashift_rl.training.algorithms import ALGORITHMS, Algorithm
 from terrashift_rl.training.checkpoint import load_checkpoint, save_checkpoint
+from terrashift_rl.training.run import run_training
 from terrashift_rl.training.schedules import LinearSchedule
 from terrashift_rl.training.trainer import (
     MAPOCATrainer,
@@ -26,5 +27,6 @@ __all__ = [
     "iterate_until",
     "load_checkpoint",
     "make_training_env",
+    "run_training",
     "save_checkpoint",
 ]

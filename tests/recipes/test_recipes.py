@@ -1,4 +1,5 @@
-"""Recipes: every config composes; the smoke config trains, resumes exactly and finetunes."""
+"""Recipes: every config composes; the smoke config trains, resumes exactly and finetunes; without
+CUDA, run.device=auto sizes a run for the CPU. The subprocess runs are marked slow."""
 
 import json
 import os
@@ -14,16 +15,21 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from PIL import Image
-from tqdm import tqdm
 
 from terrashift_rl.training import TrainConfig, load_checkpoint
 from terrashift_rl.training.checkpoint import STALE_AFTER_S
+from terrashift_rl.training.run import (
+    check_resumable,
+    check_settings,
+    register_config_schemas,
+    run_training,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPES = ROOT / "recipes"
 CONFIGS = RECIPES / "configs"
-sys.path.insert(0, str(RECIPES))
-import mapoca_pretrain  # noqa: E402  (also registers the env and model groups' schemas)
+sys.path.insert(0, str(RECIPES))  # for evaluate.SETTINGS
+register_config_schemas()
 
 PRIMARY = sorted(path.stem for path in CONFIGS.glob("*.yaml"))
 
@@ -85,6 +91,7 @@ def run(
     )
 
 
+@pytest.mark.slow
 def test_smoke_train_resume_and_finetune(tmp_path):
     straight = run("mapoca_pretrain.py", "run.total_env_steps=96", "hydra.run.dir=a", cwd=tmp_path)
     assert straight.returncode == 0, straight.stderr
@@ -146,6 +153,86 @@ def test_smoke_train_resume_and_finetune(tmp_path):
         assert video.n_frames >= 2  # the reset frame and one per decision (GIFs merge repeats)
 
 
+without_cuda = pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+
+
+@pytest.mark.slow
+@without_cuda
+@pytest.mark.parametrize(
+    ("overrides", "line", "sizes"),
+    [
+        (
+            [],
+            "no CUDA device: a CPU-sized run (model=small train.num_envs=32 run.eval_episodes=16); "
+            "set run.device=cpu to keep the configured sizes",
+            (32, 32, 16),
+        ),
+        (
+            ["train=smoke", "model=medium"],
+            "no CUDA device: a CPU-sized run (run.eval_episodes=16); set run.device=cpu",
+            (4, 64, 16),
+        ),
+        (["run.device=cpu", "train.num_envs=4", "train.minibatches=2"], None, (4, 128, 128)),
+    ],
+    ids=["configured", "train-and-model-given", "device-cpu"],
+)
+def test_without_cuda_auto_sizes_a_run_for_the_cpu_but_what_the_command_line_sets(
+    tmp_path, overrides, line, sizes
+):
+    result = run(
+        "mapoca_pretrain.py",
+        "env=smoke",
+        "train.steps_per_iteration=8",
+        "run.total_env_steps=1",
+        "run.eval_every=null",
+        "logger=none",
+        *overrides,
+        "hydra.run.dir=a",
+        cwd=tmp_path,
+        config_name=None,
+    )
+    assert result.returncode == 0, result.stderr
+    if line is None:
+        assert "no CUDA device" not in result.stdout
+    else:
+        assert line in result.stdout
+    cfg = OmegaConf.load(tmp_path / "a/config.yaml")
+    assert (cfg.train.num_envs, cfg.model.embed_dim, cfg.run.eval_episodes) == sizes
+    last = load_checkpoint(tmp_path / "a/checkpoints/last.pt")
+    assert last["env_steps"] == 8 * sizes[0]
+    assert last["model_config"]["embed_dim"] == sizes[1]
+
+
+@pytest.mark.slow
+@without_cuda
+@pytest.mark.parametrize(
+    ("overrides", "episodes", "line"),
+    [
+        ([], 64, "no CUDA device: a CPU-sized run (episodes=64); set device=cpu to keep"),
+        (["episodes=3"], 3, "no CUDA device: running on the CPU with the configured sizes"),
+    ],
+    ids=["configured", "episodes-given"],
+)
+def test_without_cuda_evaluate_scores_fewer_episodes_unless_told(
+    tmp_path, overrides, episodes, line
+):
+    result = run(
+        "evaluate.py",
+        "env=smoke",
+        "video.steps=0",
+        *overrides,
+        "hydra.run.dir=e",
+        cwd=tmp_path,
+        config_name=None,
+    )
+    assert result.returncode == 0, result.stderr
+    assert line in result.stdout
+    report = json.loads((tmp_path / "e/evaluation.json").read_text())
+    assert report["episodes"] == episodes
+    assert {scores["episodes"] for scores in report["baselines"].values()} == {episodes}
+
+
+@pytest.mark.slow
 def test_a_terminated_run_checkpoints_a_whole_iteration(tmp_path):
     # SIGTERM lands mid-iteration more often than not; the run finishes that iteration first,
     # so its checkpoint equals that of a run told to stop there
@@ -180,17 +267,7 @@ def test_a_terminated_run_checkpoints_a_whole_iteration(tmp_path):
     torch.testing.assert_close(k["simulator"], s["simulator"], atol=0, rtol=0)
 
 
-def test_a_second_signal_interrupts_at_once():
-    before = {number: signal.getsignal(number) for number in (signal.SIGINT, signal.SIGTERM)}
-    with mapoca_pretrain.StopRequest(tqdm(disable=True)) as stop:
-        assert signal.getsignal(signal.SIGTERM) is stop
-        stop(signal.SIGTERM, None)
-        assert stop.requested
-        with pytest.raises(KeyboardInterrupt):
-            stop(signal.SIGINT, None)
-    assert {number: signal.getsignal(number) for number in before} == before
-
-
+@pytest.mark.slow
 def test_best_checkpoint_and_snapshots_hold_the_weights_they_name(tmp_path):
     result = run(
         "mapoca_pretrain.py",
@@ -268,6 +345,7 @@ def test_best_checkpoint_and_snapshots_hold_the_weights_they_name(tmp_path):
     assert sampled[0] == sampled[1]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
@@ -285,6 +363,7 @@ def test_bad_configuration_fails_at_start_up(tmp_path, overrides, message):
     assert message in result.stderr
 
 
+@pytest.mark.slow
 def test_evaluate_rejects_a_respawn_that_is_not_a_boolean(tmp_path):
     result = run(
         "evaluate.py", "respawn=sometimes", "hydra.run.dir=x", cwd=tmp_path, config_name=None
@@ -302,12 +381,13 @@ def test_resume_ignores_settings_that_only_set_the_initial_weights():
         "train_config": {"minibatches": 2},
     }
     for saved_model in ({"embed_dim": 32, "policy_output_gain": 1.0}, {"embed_dim": 32}):
-        mapoca_pretrain.check_resumable({**configs, "model_config": saved_model}, configs, cfg)
+        check_resumable({**configs, "model_config": saved_model}, configs, cfg)
     wider = {**configs, "model_config": {"embed_dim": 64, "policy_output_gain": 0.01}}
     with pytest.raises(ValueError, match="add model.embed_dim=64 to continue"):
-        mapoca_pretrain.check_resumable(wider, configs, cfg)
+        check_resumable(wider, configs, cfg)
 
 
+@pytest.mark.slow
 def test_resume_names_the_settings_that_differ_from_the_checkpoints(tmp_path):
     first = run("mapoca_pretrain.py", "train.minibatches=1", "hydra.run.dir=b", cwd=tmp_path)
     assert first.returncode == 0, first.stderr
@@ -349,6 +429,7 @@ def test_the_smoke_config_takes_every_train_setting():
         ("run.eval_every=0", "run.eval_every must be an integer >= 1 or null"),
         ("run.name=''", "run.name must be a non-empty string, got ''"),
         ("run.device=tpu", "run.device must be auto, cpu, cuda or cuda:<index>, got 'tpu'"),
+        ("run.cpu_defaults=small", r"run.cpu_defaults must be a list of .*, got .small.$"),
         ("logger=wandb logger.mode=loud", "logger.mode must be offline or online, got 'loud'"),
         (
             "train.lr_trunk_policy=-1",
@@ -366,20 +447,20 @@ def test_the_smoke_config_takes_every_train_setting():
     ],
 )
 def test_every_kind_of_bad_setting_fails_before_an_environment_is_built(
-    monkeypatch, overrides, message
+    monkeypatch, tmp_path, overrides, message
 ):
     def no_environment(*args, **kwargs):
         raise AssertionError("an environment was built before the settings were checked")
 
-    monkeypatch.setattr(mapoca_pretrain, "make_training_env", no_environment)
+    monkeypatch.setattr("terrashift_rl.training.run.make_training_env", no_environment)
     with pytest.raises(ValueError, match=f"^{message}"):
-        mapoca_pretrain.train(compose_config("smoke", *overrides.split()))
+        run_training(compose_config("smoke", *overrides.split()), run_dir=tmp_path)
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
-def test_cuda_without_cuda_is_refused_at_start_up():
+def test_cuda_without_cuda_is_refused_at_start_up(tmp_path):
     with pytest.raises(ValueError, match="run.device=cuda, but this machine has 0 CUDA device"):
-        mapoca_pretrain.train(compose_config("smoke", "run.device=cuda"))
+        run_training(compose_config("smoke", "run.device=cuda"), run_dir=tmp_path)
 
 
 @pytest.mark.parametrize(
@@ -391,13 +472,16 @@ def test_cuda_without_cuda_is_refused_at_start_up():
         ("video.fps=0", "video.fps must be a finite number > 0, got 0"),
         ("baselines=maybe", "baselines must be true or false, got 'maybe'"),
         ("checkpoint=7", r"checkpoint must be a non-empty string or null \(the baselines alone\)"),
+        ("respawn=sometimes", r"respawn must be false \(evaluation mode\) or true"),
+        ("cpu_defaults=[episodes]", r"cpu_defaults must be a list of overrides \(key=value\)"),
     ],
 )
 def test_evaluation_settings_are_checked(override, message):
     import evaluate
 
+    check_settings(compose_config("evaluate"), evaluate.SETTINGS)
     with pytest.raises(ValueError, match=f"^{message}"):
-        mapoca_pretrain.check_settings(compose_config("evaluate", override), evaluate.SETTINGS)
+        check_settings(compose_config("evaluate", override), evaluate.SETTINGS)
 
 
 def test_the_resume_hint_pastes_into_a_shell_as_it_is():
@@ -415,13 +499,14 @@ def test_the_resume_hint_pastes_into_a_shell_as_it_is():
     saved["model_config"].update(cnn_channels=[8, 16, 16])
     saved["train_config"].update(gamma=0.9, lr_schedule="adaptive")
     with pytest.raises(ValueError, match="add (.*) to continue it") as refused:
-        mapoca_pretrain.check_resumable(saved, configs_of(cfg), cfg)
+        check_resumable(saved, configs_of(cfg), cfg)
     hint = str(refused.value).split("; add ")[1].split(" to continue it")[0]
     assert "'model.cnn_channels=[8,16,16]'" in hint.split()
     resumed = compose_config("smoke", *shlex.split(hint))
-    mapoca_pretrain.check_resumable(saved, configs_of(resumed), resumed)  # nothing differs
+    check_resumable(saved, configs_of(resumed), resumed)  # nothing differs
 
 
+@pytest.mark.slow
 def test_a_run_that_turns_non_finite_stops_and_keeps_the_last_good_checkpoint(tmp_path):
     result = run(
         "mapoca_pretrain.py",
@@ -440,6 +525,7 @@ def test_a_run_that_turns_non_finite_stops_and_keeps_the_last_good_checkpoint(tm
     assert all(value.isfinite().all() for value in last["networks"].values())
 
 
+@pytest.mark.slow
 def test_evaluate_refuses_a_checkpoint_that_would_run_code(tmp_path):
     class CreatesAFile:
         def __reduce__(self):

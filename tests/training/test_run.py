@@ -1,0 +1,95 @@
+"""The recipes' run: which CPU-sized defaults apply, settings' rules, the stop request."""
+
+import signal
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from tqdm import tqdm
+
+from terrashift_rl.training import load_checkpoint, run
+from terrashift_rl.training.run import (
+    OVERRIDES,
+    StopRequest,
+    check_settings,
+    cpu_overrides,
+    resolve_device,
+    size_for_the_machine,
+)
+
+DEFAULTS = ["model=small", "train.num_envs=32", "run.eval_episodes=16"]
+
+
+@pytest.mark.parametrize(
+    ("given", "kept"),
+    [
+        ([], DEFAULTS),
+        (["env=finetune", "run.seed=3", "logger=csv"], DEFAULTS),
+        (["train.num_envs=8"], ["model=small", "run.eval_episodes=16"]),
+        (["model=medium"], ["train.num_envs=32", "run.eval_episodes=16"]),
+        (["model.embed_dim=64"], ["train.num_envs=32", "run.eval_episodes=16"]),
+        (["+model.dropout=0.05"], ["train.num_envs=32", "run.eval_episodes=16"]),
+        (["train=throughput"], ["model=small", "run.eval_episodes=16"]),
+        (["~run.eval_episodes"], ["model=small", "train.num_envs=32"]),
+        (["train.num_envs_per_gpu=1"], DEFAULTS),  # a key that only starts like one
+    ],
+)
+def test_a_cpu_default_applies_unless_the_command_line_sets_its_key_or_group(given, kept):
+    assert cpu_overrides(DEFAULTS, given) == kept
+
+
+@pytest.mark.parametrize(
+    ("value", "shown"),
+    [("model=small", "'model=small'"), (["model"], r"\['model'\]"), ([3], r"\[3\]")],
+)
+def test_cpu_defaults_that_are_not_overrides_are_refused_naming_the_key(value, shown):
+    rules = {"run.cpu_defaults": OVERRIDES}
+    check_settings(OmegaConf.create({"run": {"cpu_defaults": DEFAULTS}}), rules)
+    message = f"^run.cpu_defaults must be a list of overrides \\(key=value\\), got {shown}$"
+    with pytest.raises(ValueError, match=message):
+        check_settings(OmegaConf.create({"run": {"cpu_defaults": value}}), rules)
+
+
+@pytest.mark.parametrize(("device", "cuda"), [("cpu", False), ("cuda:0", True), ("auto", True)])
+def test_only_auto_on_a_machine_without_cuda_is_sized_for_the_cpu(monkeypatch, device, cuda):
+    # outside a Hydra app, sizing would fail reading the command line: it must not try
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: cuda)
+    cfg = OmegaConf.create({"run": {"device": device, "cpu_defaults": DEFAULTS}})
+    sized = size_for_the_machine(cfg, device_key="run.device", defaults_key="run.cpu_defaults")
+    assert sized is cfg
+
+
+def test_auto_resolves_to_the_cpu_without_cuda(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert resolve_device("auto", "run.device") == torch.device("cpu")
+    with pytest.raises(ValueError, match="^device must be auto, cpu, cuda or cuda:<index>, got 7"):
+        resolve_device(7, "device")
+
+
+def test_a_second_signal_interrupts_at_once():
+    before = {number: signal.getsignal(number) for number in (signal.SIGINT, signal.SIGTERM)}
+    with StopRequest(tqdm(disable=True)) as stop:
+        assert signal.getsignal(signal.SIGTERM) is stop
+        stop(signal.SIGTERM, None)
+        assert stop.requested
+        with pytest.raises(KeyboardInterrupt):
+            stop(signal.SIGINT, None)
+    assert {number: signal.getsignal(number) for number in before} == before
+
+
+def test_the_best_window_writes_best_pt_only_when_its_mean_is_the_highest_yet(tmp_path):
+    class Trainer:  # what weights_state reads
+        networks = torch.nn.Linear(1, 1)
+        iteration, env_steps = 3, 96
+
+    best = {"reward": -float("inf"), "recent": []}
+    path = tmp_path / "best.pt"
+    run.update_best(best, 1.0, 2, Trainer(), {}, path)
+    assert not path.exists()  # the window is not full yet
+    run.update_best(best, 3.0, 2, Trainer(), {}, path)
+    assert best == {"reward": 2.0, "recent": [1.0, 3.0]}
+    saved = load_checkpoint(path)
+    assert (saved["mean_reward_per_decision"], saved["iteration"]) == (2.0, 3)
+    path.unlink()
+    run.update_best(best, 0.0, 2, Trainer(), {}, path)
+    assert best["reward"] == 2.0 and best["recent"] == [3.0, 0.0] and not path.exists()
