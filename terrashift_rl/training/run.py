@@ -300,9 +300,15 @@ def check_resumable(resume: dict, configs: dict, cfg: DictConfig) -> None:
     would continue it."""
     differ = []
     configs = {**configs, "model_config": network_settings(configs["model_config"])}
+    # a training setting the checkpoint predates was trained at its default
+    predated = {
+        "env_config": {},
+        "model_config": {},
+        "train_config": dataclasses.asdict(TrainConfig()),
+    }
     for name, group in (("env_config", "env"), ("model_config", "model"), ("train_config", "")):
         for key, value in configs[name].items():
-            saved = resume[name].get(key)
+            saved = resume[name].get(key, predated[name].get(key))
             if saved == value or (name == "train_config" and key in EXECUTION_SETTINGS):
                 continue
             prefix = group or ("loss" if key in cfg.loss else "train")
@@ -383,7 +389,7 @@ def checkpoint_state(
 def weights_state(trainer: MAPOCATrainer, configs: dict, **extra: Any) -> dict:
     """The networks, configs and counters: what evaluate.py and finetuning read."""
     return {
-        "networks": trainer.networks.state_dict(),
+        **trainer.weights_state_dict(),
         **configs,
         "iteration": trainer.iteration,
         "env_steps": trainer.env_steps,
@@ -465,11 +471,12 @@ def run_training(cfg: DictConfig, *, run_dir: Path) -> Path:
                 f"run.pretrained={cfg.run.pretrained} holds a network of another shape; use the "
                 "model settings it was trained with"
             )
-        networks.load_state_dict(pretrained["networks"])
     env = make_training_env(
         env_config, networks, num_envs=train_config.num_envs, device=device, seed=cfg.run.seed
     )
     trainer = MAPOCATrainer(env, networks, train_config)
+    if cfg.run.pretrained:
+        trainer.load_weights(pretrained)
     # evaluation mode (no respawn), the same scenes at every evaluation
     eval_env = eval_every and make_training_env(
         env_config.replace(respawn=False),

@@ -59,6 +59,10 @@ def test_every_group_option_composes_into_its_dataclass(group, option):
 
     with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
         cfg = compose(config_name="mapoca_pretrain", overrides=[f"{group}={option}"])
+    if group == "algo":  # its files set train.algo
+        assert cfg.train.algo == option
+        TrainConfig(**{**cfg.train, **cfg.loss}).validate()
+        return
     values = dict(cfg[group])
     if group == "env":
         TerraShiftConfig(**values)
@@ -536,3 +540,19 @@ def test_evaluate_refuses_a_checkpoint_that_would_run_code(tmp_path):
     assert result.returncode != 0
     assert "refused to load shared.pt: loading it would call" in result.stderr
     assert not (tmp_path / "created_by_loading").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("algo", ["mappo", "ippo"])
+def test_every_algorithm_trains_resumes_and_finetunes_from_the_recipes(tmp_path, algo):
+    steps = ("run.total_env_steps=64", "run.eval_every=null")
+    first = run("mapoca_pretrain.py", f"algo={algo}", *steps, "hydra.run.dir=a", cwd=tmp_path)
+    assert first.returncode == 0, first.stderr[-2000:]
+    last = tmp_path / "a/checkpoints/last.pt"
+    assert load_checkpoint(last)["train_config"]["algo"] == algo
+    more = ("run.total_env_steps=128", "run.eval_every=null", f"run.resume={last}")
+    resumed = run("mapoca_pretrain.py", f"algo={algo}", *more, "hydra.run.dir=b", cwd=tmp_path)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert load_checkpoint(tmp_path / "b/checkpoints/last.pt")["env_steps"] == 128
+    other = run("mapoca_pretrain.py", "algo=mapoca", *more, "hydra.run.dir=c", cwd=tmp_path)
+    assert other.returncode != 0 and f"train.algo={algo}" in other.stderr
