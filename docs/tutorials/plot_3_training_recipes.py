@@ -195,5 +195,6 @@ plt.show()
 # -----------------------
 # The recipes compose :mod:`terrashift_rl.training`: ``make_training_env``,
 # ``make_terrashift_networks`` and ``MAPOCATrainer``, put together in
-# ``terrashift_rl.training.run.run_training``; read it top to bottom to see how. ``torch`` picks the CPU here: a GPU run only changes ``run.device``.
+# ``terrashift_rl.training.run.run_training``; read it top to bottom to see how. ``torch``
+# picks the CPU here: a GPU run only changes ``run.device``.
 print("CUDA available:", torch.cuda.is_available())
