@@ -79,8 +79,10 @@ def test_a_second_signal_interrupts_at_once():
 
 def test_the_best_window_writes_best_pt_only_when_its_mean_is_the_highest_yet(tmp_path):
     class Trainer:  # what weights_state reads
-        networks = torch.nn.Linear(1, 1)
         iteration, env_steps = 3, 96
+
+        def weights_state_dict(self):
+            return {"networks": torch.nn.Linear(1, 1).state_dict(), "algo": "mapoca"}
 
     best = {"reward": -float("inf"), "recent": []}
     path = tmp_path / "best.pt"
@@ -90,6 +92,7 @@ def test_the_best_window_writes_best_pt_only_when_its_mean_is_the_highest_yet(tm
     assert best == {"reward": 2.0, "recent": [1.0, 3.0]}
     saved = load_checkpoint(path)
     assert (saved["mean_reward_per_decision"], saved["iteration"]) == (2.0, 3)
+    assert saved["algo"] == "mapoca" and "weight" in saved["networks"]
     path.unlink()
     run.update_best(best, 0.0, 2, Trainer(), {}, path)
     assert best["reward"] == 2.0 and best["recent"] == [3.0, 0.0] and not path.exists()
