@@ -7,11 +7,12 @@ import math
 import pytest
 import torch
 from tensordict import TensorDict
+from test_trainer import ENV  # the same small scene and trainer
+from test_trainer import make_trainer as make_training
 from torchrl.modules import set_recurrent_mode
 
 from terrashift_rl.modules import TerraShiftModelConfig, keys, make_terrashift_networks
 from terrashift_rl.modules.independent import AGENT_VALUE
-from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training import (
     ALGORITHMS,
     OnPolicyTrainer,
@@ -21,26 +22,13 @@ from terrashift_rl.training import (
     save_checkpoint,
 )
 
-ENV = TerraShiftConfig(
-    grid_size=8,
-    num_agents=4,
-    num_objects=2,
-    num_goals=2,
-    spawn_margin=1,
-    max_episode_steps=6,
-    heightmap_resolution=16,
-)
 ALGOS = ("mapoca", "mappo", "ippo")
 # metrics that measure time, not learning
 TIMINGS = ("_seconds", "_per_s")
 
 
 def make_trainer(algo: str, *, seed: int = 0, **train) -> OnPolicyTrainer:
-    torch.manual_seed(seed)
-    networks = make_terrashift_networks(TerraShiftModelConfig.small())
-    config = TrainConfig(algo=algo, num_envs=3, steps_per_iteration=8, minibatches=1, **train)
-    env = make_training_env(ENV, networks, num_envs=3, device=torch.device("cpu"), seed=seed)
-    return OnPolicyTrainer(env, networks, config)
+    return make_training(seed=seed, algo=algo, **train)
 
 
 def weights(trainer: OnPolicyTrainer) -> dict[str, torch.Tensor]:

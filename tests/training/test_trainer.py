@@ -39,11 +39,12 @@ CUDA = torch.device("cuda")
 MODEL = dataclasses.replace(TerraShiftModelConfig.small(), dropout=0.0)
 
 
-def make_trainer(**train) -> MAPOCATrainer:
-    torch.manual_seed(0)
+def make_trainer(*, seed: int = 0, **train) -> MAPOCATrainer:
+    """A trainer of the small network on three environments of ``ENV``."""
+    torch.manual_seed(seed)
     networks = make_terrashift_networks(TerraShiftModelConfig.small())
     config = TrainConfig(num_envs=3, steps_per_iteration=8, minibatches=1, **train)
-    env = make_training_env(ENV, networks, num_envs=3, device=torch.device("cpu"), seed=0)
+    env = make_training_env(ENV, networks, num_envs=3, device=torch.device("cpu"), seed=seed)
     return MAPOCATrainer(env, networks, config)
 
 
