@@ -102,10 +102,11 @@ class ScriptedHeuristicPolicy:
     ``v* = sphere velocity + position_gain * e``, where ``e`` is the torus-wrapped offset from
     the wavelet to its target (the grid wraps) and the sphere's velocity (converted to cells
     per wave step) is a feed-forward term that keeps the bump behind a rolling sphere;
-    ``v*`` is clipped to the speed limit. The action is the velocity error divided by the
-    change one decision of full action produces (``velocity_gain * wave_step * action_repeat``),
-    clipped to [-1, 1]: a proportional velocity loop on top of the position loop, that is, PD
-    on the position.
+    ``v*`` is clipped to the speed limit. With ``delta`` actions the action is the velocity
+    error divided by the change one decision of full action produces (``velocity_gain *
+    wave_step * action_repeat``), clipped to [-1, 1]: a proportional velocity loop on top of the
+    position loop, that is, PD on the position. With ``target`` actions it is ``v*`` itself
+    (over the speed limit), and the simulator's rate-limited tracking closes the loop.
 
     **Shape.** The same rule drives the other parameters to set points: amplitude towards
     ``amplitude * max_amplitude`` once the wavelet is within ``engage_distance`` cells of its
@@ -222,19 +223,27 @@ class ScriptedHeuristicPolicy:
             error = error - g * torch.floor(error / g + 0.5)
         distance = error.norm(dim=-1)
 
-        # PD-like law: desired velocity from the position error, action from the velocity error
+        # PD-like law: desired velocity from the position error
         desired = sphere_velocity + self.position_gain * error
         desired = torch.where(engaged.unsqueeze(-1), desired, torch.zeros_like(desired))
         desired = desired.clamp(-cfg.max_velocity, cfg.max_velocity)
-        per_decision = cfg.wave_step * cfg.action_repeat
-        move = (desired - velocity) / (cfg.velocity_gain * per_decision)
 
         # shape set points: a positive bump of width sigma, no spin; flat while travelling
         close = engaged & (distance <= self.engage_distance)
         amplitude_target = torch.where(close, self.amplitude * cfg.max_amplitude, 0.0)
-        grow = (amplitude_target - amplitude) / (cfg.amplitude_gain * per_decision)
-        widen = (self.sigma - widths) / (cfg.sigma_gain * per_decision)
-        turn = -spin / (cfg.angular_velocity_gain * per_decision)
+        if cfg.action_mode == "target":
+            half_range = 0.5 * (cfg.sigma_max - cfg.sigma_min)
+            move = desired / cfg.max_velocity
+            turn = torch.zeros_like(spin)
+            grow = amplitude_target / cfg.max_amplitude
+            width = (self.sigma - cfg.sigma_min) / half_range - 1.0 if half_range > 0 else 0.0
+            widen = torch.full_like(widths, width)
+        else:  # the change one decision of full action produces closes the error
+            per_decision = cfg.wave_step * cfg.action_repeat
+            move = (desired - velocity) / (cfg.velocity_gain * per_decision)
+            turn = -spin / (cfg.angular_velocity_gain * per_decision)
+            grow = (amplitude_target - amplitude) / (cfg.amplitude_gain * per_decision)
+            widen = (self.sigma - widths) / (cfg.sigma_gain * per_decision)
 
         action = torch.cat([move, turn.unsqueeze(-1), grow.unsqueeze(-1), widen], dim=-1)
         action = action.clamp(-1.0, 1.0).to(torch.float32)

@@ -16,6 +16,9 @@ from typing import Any
 COLUMN_SHAPES = ("ellipsoid", "box", "smooth")
 """Column shapes: ellipsoids (the paper's), boxes (classic pins), a smooth interpolated surface."""
 
+ACTION_MODES = ("delta", "target")
+"""What an action sets: the change of each wavelet quantity (the paper's), or its target value."""
+
 
 @dataclass
 class TerraShiftConfig:
@@ -53,6 +56,13 @@ class TerraShiftConfig:
     # --- wave agents ----------------------------------------------------------------------
     num_agents: int = 8
     """Wave agents K (one Gaussian wavelet each) [count], >= 1."""
+    action_mode: str = "delta"
+    """What an action in [-1, 1] sets, one of ``delta`` or ``target``. ``delta`` (the paper's):
+    the change of each wavelet quantity per physics tick, ``gain * wave_step * action``.
+    ``target``: the value each quantity moves towards, mapped from [-1, 1] onto its range
+    (velocities, spin and amplitude onto +-their limits, widths onto [sigma_min, sigma_max]);
+    each tick it moves by at most a full ``delta`` action's change, so the actuators' rate
+    limits are the same in both modes."""
     wave_step: float = 0.1
     """Integration step of the wavelet parameters per physics tick [dimensionless], > 0."""
     velocity_gain: float = 1.0
@@ -277,6 +287,8 @@ class TerraShiftConfig:
             value = getattr(self, name)
             if not isinstance(value, bool):
                 raise ValueError(f"{name} must be true or false, got {value!r}")
+        if self.action_mode not in ACTION_MODES:
+            raise ValueError(f"action_mode must be one of {ACTION_MODES}, got {self.action_mode!r}")
         if self.column_shape not in COLUMN_SHAPES:
             raise ValueError(
                 f"column_shape must be one of {COLUMN_SHAPES}, got {self.column_shape!r}"

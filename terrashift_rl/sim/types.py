@@ -11,17 +11,19 @@ import math
 
 import warp as wp
 
-from terrashift_rl.sim.config import COLUMN_SHAPES, TerraShiftConfig
+from terrashift_rl.sim.config import ACTION_MODES, COLUMN_SHAPES, TerraShiftConfig
 
 SHAPE_ELLIPSOID = wp.constant(COLUMN_SHAPES.index("ellipsoid"))
 SHAPE_BOX = wp.constant(COLUMN_SHAPES.index("box"))
+ACTION_TARGET = wp.constant(ACTION_MODES.index("target"))
 
 OBJECT_FEATURES = 9
 """Per-object observation: position (3), goal position (3), velocity (3)."""
 AGENT_FEATURES = 9
 """Per-agent observation: x, y, theta, amplitude, sigma_x, sigma_y, v_x, v_y, omega."""
 ACTION_NAMES = ("v_x", "v_y", "omega", "amplitude", "sigma_x", "sigma_y")
-"""Per-agent action, each in [-1, 1]: the change of each of these wavelet quantities."""
+"""Per-agent action, each in [-1, 1]: the change or the target of each of these wavelet
+quantities (``TerraShiftConfig.action_mode``)."""
 ACTION_DIM = len(ACTION_NAMES)
 
 
@@ -42,6 +44,7 @@ class Model:
     max_column_height: float
     wrap_edges: int
 
+    action_mode: int
     wave_step: float
     velocity_gain: float
     angular_velocity_gain: float
@@ -172,6 +175,7 @@ def build_model(config: TerraShiftConfig) -> Model:
     m.max_column_height = config.max_column_height
     m.wrap_edges = int(config.wrap_edges)
 
+    m.action_mode = ACTION_MODES.index(config.action_mode)
     m.wave_step = config.wave_step
     m.velocity_gain = config.velocity_gain
     m.angular_velocity_gain = config.angular_velocity_gain

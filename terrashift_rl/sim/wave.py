@@ -2,8 +2,9 @@
 
 Each agent owns one Gaussian wavelet with state (x, y, theta, A, sigma_x, sigma_y, v_x, v_y,
 omega). An action in [-1, 1]^6 changes the *rates* (v_x, v_y, omega) and the shape (A, sigma_x,
-sigma_y) by a gain times the wave step each physics tick; rates are clamped before they move
-the wavelet, so the speed limits hold exactly. Heights are the clipped sum of all wavelets at
+sigma_y) by a gain times the wave step each physics tick, or, with ``action_mode="target"``,
+sets the values they move towards at that same limited rate; rates are clamped before they
+move the wavelet, so the speed limits hold exactly. Heights are the clipped sum of all wavelets at
 integer cell positions, with offsets wrapped into [-G/2, G/2) when the grid is a torus.
 """
 
@@ -11,7 +12,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from terrashift_rl.sim.types import Model
+from terrashift_rl.sim.types import ACTION_TARGET, Model
 
 TWO_PI = wp.constant(6.283185307179586)
 
@@ -36,20 +37,50 @@ def update_agents(
     """Applies one physics tick of action deltas to every wavelet. Launch dim: [num_envs, K]."""
     e, k = wp.tid()
     step = model.wave_step
-    # the action's dims in ACTION_NAMES order, each a change in [-1, 1]
-    d_velocity = wp.vec2(wp.clamp(action[e, k, 0], -1.0, 1.0), wp.clamp(action[e, k, 1], -1.0, 1.0))
-    d_omega = wp.clamp(action[e, k, 2], -1.0, 1.0)
-    d_amplitude = wp.clamp(action[e, k, 3], -1.0, 1.0)
-    d_sigma = wp.vec2(wp.clamp(action[e, k, 4], -1.0, 1.0), wp.clamp(action[e, k, 5], -1.0, 1.0))
-
     vmax = model.max_velocity
-    v = velocity[e, k] + model.velocity_gain * step * d_velocity
-    v = wp.vec2(wp.clamp(v[0], -vmax, vmax), wp.clamp(v[1], -vmax, vmax))
     omax = model.max_angular_velocity
-    w = wp.clamp(angular_velocity[e, k] + model.angular_velocity_gain * step * d_omega, -omax, omax)
     amax = model.max_amplitude
-    amp = wp.clamp(amplitude[e, k] + model.amplitude_gain * step * d_amplitude, -amax, amax)
-    s = sigma[e, k] + model.sigma_gain * step * d_sigma
+    # the action's dims in ACTION_NAMES order, each in [-1, 1]
+    a = wp.vec2(wp.clamp(action[e, k, 0], -1.0, 1.0), wp.clamp(action[e, k, 1], -1.0, 1.0))
+    a_omega = wp.clamp(action[e, k, 2], -1.0, 1.0)
+    a_amplitude = wp.clamp(action[e, k, 3], -1.0, 1.0)
+    a_sigma = wp.vec2(wp.clamp(action[e, k, 4], -1.0, 1.0), wp.clamp(action[e, k, 5], -1.0, 1.0))
+    v0 = velocity[e, k]
+    w0 = angular_velocity[e, k]
+    amp0 = amplitude[e, k]
+    s0 = sigma[e, k]
+
+    d_velocity = a
+    d_omega = a_omega
+    d_amplitude = a_amplitude
+    d_sigma = a_sigma
+    if model.action_mode == ACTION_TARGET:
+        # the change towards each target, in units of a full delta action's change per tick
+        v_gain = model.velocity_gain * step
+        d_velocity = wp.vec2(
+            wp.clamp((a[0] * vmax - v0[0]) / v_gain, -1.0, 1.0),
+            wp.clamp((a[1] * vmax - v0[1]) / v_gain, -1.0, 1.0),
+        )
+        d_omega = wp.clamp((a_omega * omax - w0) / (model.angular_velocity_gain * step), -1.0, 1.0)
+        d_amplitude = wp.clamp(
+            (a_amplitude * amax - amp0) / (model.amplitude_gain * step), -1.0, 1.0
+        )
+        half_range = 0.5 * (model.sigma_max - model.sigma_min)
+        s_target = wp.vec2(
+            model.sigma_min + (a_sigma[0] + 1.0) * half_range,
+            model.sigma_min + (a_sigma[1] + 1.0) * half_range,
+        )
+        s_gain = model.sigma_gain * step
+        d_sigma = wp.vec2(
+            wp.clamp((s_target[0] - s0[0]) / s_gain, -1.0, 1.0),
+            wp.clamp((s_target[1] - s0[1]) / s_gain, -1.0, 1.0),
+        )
+
+    v = v0 + model.velocity_gain * step * d_velocity
+    v = wp.vec2(wp.clamp(v[0], -vmax, vmax), wp.clamp(v[1], -vmax, vmax))
+    w = wp.clamp(w0 + model.angular_velocity_gain * step * d_omega, -omax, omax)
+    amp = wp.clamp(amp0 + model.amplitude_gain * step * d_amplitude, -amax, amax)
+    s = s0 + model.sigma_gain * step * d_sigma
     s = wp.vec2(
         wp.clamp(s[0], model.sigma_min, model.sigma_max),
         wp.clamp(s[1], model.sigma_min, model.sigma_max),

@@ -175,6 +175,25 @@ def test_heuristic_skips_empty_slots_and_idles_without_spheres():
     assert (action[:, VX] < 0).all() and (action[:, AMP] < 0).all()
 
 
+def test_heuristic_with_target_actions_sets_its_set_points():
+    cfg = one_object_config().replace(action_mode="target")
+    policy = ScriptedHeuristicPolicy(cfg)
+    sphere, goal = (7.0, 7.0), (12.0, 7.0)  # target cell x = 5
+    far = posed_scene([(1.0, 7.0)], [sphere], [goal], cfg)
+    far[GROUP, "observation"][0, 0, 3] = 0.5  # a half-height bump travelling
+    far[GROUP, "observation"][0, 0, 6] = 0.5  # already moving towards +x
+    far[GROUP, "observation"][0, 0, 8] = 0.5  # spinning
+    action = policy(far)[GROUP, "action"][0, 0]
+    # full speed towards +x whatever the current velocity, no spin, flat, one cell wide
+    assert action[VX] == 1.0 and abs(action[VY]) < 1e-6
+    assert action[OMEGA] == 0.0 and action[AMP] == 0.0
+    width = cfg.sigma_min + (action[SX] + 1) * 0.5 * (cfg.sigma_max - cfg.sigma_min)
+    assert width == pytest.approx(1.0) and action[SY] == action[SX]
+    # on its target: at rest, raised to the full amplitude
+    at_target = policy(posed_scene([(5.0, 7.0)], [sphere], [goal], cfg))[GROUP, "action"][0, 0]
+    assert abs(at_target[VX]) < 1e-5 and at_target[AMP] == 1.0
+
+
 def test_heuristic_rejects_bad_parameters():
     with pytest.raises(ValueError, match="amplitude"):
         ScriptedHeuristicPolicy(CFG, amplitude=0.0)

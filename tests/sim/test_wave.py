@@ -184,6 +184,8 @@ def reference_tick(state: dict[str, np.ndarray], action: np.ndarray, cfg: TerraS
     wavelet moves with the clamped rates."""
     a = np.clip(action, -1.0, 1.0)
     h = cfg.wave_step
+    if cfg.action_mode == "target":
+        a = changes_towards_targets(state, a, cfg)
     g = cfg.grid_size
     v = np.clip(
         state["agent_velocity"] + cfg.velocity_gain * h * a[..., 0:2],
@@ -216,15 +218,39 @@ def reference_tick(state: dict[str, np.ndarray], action: np.ndarray, cfg: TerraS
     }
 
 
+def changes_towards_targets(state: dict[str, np.ndarray], a: np.ndarray, cfg: TerraShiftConfig):
+    """The delta action that moves each quantity towards the target ``a`` sets, by at most a
+    full delta action's change."""
+    h = cfg.wave_step
+    half_range = 0.5 * (cfg.sigma_max - cfg.sigma_min)
+    targets = (
+        (a[..., 0:2] * cfg.max_velocity, state["agent_velocity"], cfg.velocity_gain),
+        (
+            a[..., 2:3] * cfg.max_angular_velocity,
+            state["agent_angular_velocity"][..., None],
+            cfg.angular_velocity_gain,
+        ),
+        (a[..., 3:4] * cfg.max_amplitude, state["agent_amplitude"][..., None], cfg.amplitude_gain),
+        (cfg.sigma_min + (a[..., 4:6] + 1.0) * half_range, state["agent_sigma"], cfg.sigma_gain),
+    )
+    return np.concatenate(
+        [np.clip((target - now) / (gain * h), -1.0, 1.0) for target, now, gain in targets], -1
+    )
+
+
 def circular_error(actual: np.ndarray, expected: np.ndarray, period: float) -> np.ndarray:
     """|actual - expected| on a circle, so values just either side of the wrap compare equal."""
     d = actual - expected
     return np.abs(d - period * np.round(d / period))
 
 
-@pytest.mark.parametrize("wrap_edges", [True, False])
-def test_parameter_dynamics_match_reference_over_several_decisions(wrap_edges):
-    sim = make_sim(num_envs=3, num_agents=6, action_repeat=3, wrap_edges=wrap_edges)
+@pytest.mark.parametrize(
+    ("wrap_edges", "action_mode"), [(True, "delta"), (False, "delta"), (True, "target")]
+)
+def test_parameter_dynamics_match_reference_over_several_decisions(wrap_edges, action_mode):
+    sim = make_sim(
+        num_envs=3, num_agents=6, action_repeat=3, wrap_edges=wrap_edges, action_mode=action_mode
+    )
     cfg = sim.config
     rng = np.random.default_rng(SEED)
     state = read_state(sim)
@@ -256,6 +282,8 @@ def test_parameter_dynamics_match_reference_over_several_decisions(wrap_edges):
         assert (actual["agent_position"] <= cfg.grid_size).all()
         assert (actual["agent_angle"] >= 0).all()
         assert (actual["agent_angle"] <= 2 * math.pi).all()
+    if action_mode == "target":  # random targets rarely hold long enough to reach a limit
+        return
     # the run exercised the limits
     assert np.isclose(np.abs(state["agent_velocity"]), cfg.max_velocity).any()
     assert (
@@ -283,6 +311,30 @@ def test_one_tick_from_rest_moves_by_gain_times_step():
     )
     assert sim.view("agent_sigma")[0, 0].tolist() == pytest.approx(
         [1.0 - cfg.sigma_gain * h, 1.0 + cfg.sigma_gain * h], abs=1e-6
+    )
+
+
+def test_target_actions_reach_their_targets_at_the_delta_rate_and_hold_them():
+    sim = make_sim(num_envs=1, num_agents=1, action_repeat=1, action_mode="target")
+    cfg = sim.config
+    set_agents(sim, [[[5.0, 6.0]]], [[1.0]], [[0.0]], [[[1.0, 1.0]]])
+    # targets: v = (+max, -max / 2), spin 0, amplitude +max, widths (sigma_min, sigma_max)
+    action = torch.tensor([[[1.0, -0.5, 0.0, 1.0, -1.0, 1.0]]])
+    h = cfg.wave_step
+    sim.step(action)  # one tick from rest: a full delta action's change towards each target
+    assert sim.view("agent_velocity")[0, 0].tolist() == pytest.approx([h, -h], abs=1e-7)
+    assert sim.view("agent_amplitude")[0, 0].item() == pytest.approx(
+        cfg.amplitude_gain * h, abs=1e-7
+    )
+    for _ in range(60):  # long enough for the slowest (the widths: 1.8 cells at 0.05 a tick)
+        sim.step(action)
+    assert sim.view("agent_velocity")[0, 0].tolist() == pytest.approx(
+        [cfg.max_velocity, -0.5 * cfg.max_velocity], abs=1e-6
+    )
+    assert sim.view("agent_angular_velocity")[0, 0].item() == pytest.approx(0.0, abs=1e-7)
+    assert sim.view("agent_amplitude")[0, 0].item() == pytest.approx(cfg.max_amplitude, abs=1e-7)
+    assert sim.view("agent_sigma")[0, 0].tolist() == pytest.approx(
+        [cfg.sigma_min, cfg.sigma_max], abs=1e-6
     )
 
 
