@@ -53,7 +53,8 @@ class TerraShiftModelConfig:
     """Hidden width of the per-slot object MLP (9 -> 64 -> d)."""
     relative_objects: bool = False
     """Give every agent its own object tokens, encoded from the slot's features and the offsets
-    from the agent's wavelet to the object and to its goal (13 -> 64 -> d). Off is the paper's
+    from the agent's wavelet to the object and to its goal, straight and the short way round
+    a wrapping grid (17 -> 64 -> d). Off is the paper's
     design: one token per object, shared by all agents. Reads x, y as the first two agent
     features and as features 0-1 (object) and 3-4 (goal) of a slot, all over the platform."""
 

@@ -19,7 +19,8 @@ class ObjectEncoder(nn.Module):
 
     With ``config.relative_objects`` the encoder is called with the agents' observations too and
     encodes one token per (agent, slot): the slot's features and the offsets from the agent's
-    wavelet to the object and to its goal, so each agent reads where things are from where it is.
+    wavelet to the object and to its goal, straight and the short way round a wrapping grid, so
+    each agent reads where things are from where it is.
 
     Args:
         config: network sizes.
@@ -35,7 +36,7 @@ class ObjectEncoder(nn.Module):
     def __init__(self, config: TerraShiftModelConfig) -> None:
         super().__init__()
         self.relative = config.relative_objects
-        in_dim = config.object_feature_dim + (4 if self.relative else 0)
+        in_dim = config.object_feature_dim + (8 if self.relative else 0)
         self.mlp = nn.Sequential(
             nn.Linear(in_dim, config.object_hidden_dim),
             nn.GELU(),
@@ -59,6 +60,8 @@ class ObjectEncoder(nn.Module):
                 [objects[..., None, :, 0:2] - agent_xy, objects[..., None, :, 3:5] - agent_xy],
                 dim=-1,
             )
+            # the same offsets the short way round a wrapping grid (2 = the platform's width)
+            offsets = torch.cat([offsets, offsets - 2.0 * torch.round(0.5 * offsets)], dim=-1)
             per_agent = objects.unsqueeze(-3).expand(*offsets.shape[:-1], objects.shape[-1])
             objects = torch.cat([per_agent, offsets], dim=-1)
             if objects_mask is not None:

@@ -109,16 +109,25 @@ def test_relative_object_tokens_encode_each_agents_offsets(small_config):
     tokens = encoder(objects, mask, agents)
     assert tokens.shape == (2, 5, 3, small_config.embed_dim)
     for b, k, m in [(0, 0, 0), (0, 4, 1), (1, 2, 2)]:
-        inputs = torch.cat(
-            [
-                objects[b, m],
-                objects[b, m, 0:2] - agents[b, k, 0:2],
-                objects[b, m, 3:5] - agents[b, k, 0:2],
-            ]
+        offsets = torch.cat(
+            [objects[b, m, 0:2] - agents[b, k, 0:2], objects[b, m, 3:5] - agents[b, k, 0:2]]
         )
+        short = torch.where(
+            offsets > 1, offsets - 2, torch.where(offsets < -1, offsets + 2, offsets)
+        )
+        inputs = torch.cat([objects[b, m], offsets, short])
         expected = encoder.mlp(inputs) + sincos_code(torch.tensor(m), small_config.embed_dim)
         torch.testing.assert_close(tokens[b, k, m], expected)
     assert tokens[0, :, 2].eq(0).all() and tokens[1, :, 1].eq(0).all()  # padded slots
+    # an object just across the wrapped edge from an agent reads as close
+    objects[0, 0, 0:2], agents[0, 0, 0:2] = torch.tensor([0.9, 0.0]), torch.tensor([-0.9, 0.0])
+    captured = []
+    handle = encoder.mlp[0].register_forward_hook(lambda mod, args, out: captured.append(args[0]))
+    encoder(objects, mask, agents)
+    handle.remove()
+    straight, short = captured[0][0, 0, 0, 9:11], captured[0][0, 0, 0, 13:15]
+    torch.testing.assert_close(straight, torch.tensor([1.8, 0.0]))
+    torch.testing.assert_close(short, torch.tensor([-0.2, 0.0]))
     with pytest.raises(ValueError, match="agents' observations"):
         encoder(objects, mask)
 
