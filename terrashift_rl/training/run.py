@@ -17,6 +17,7 @@ import math
 import shlex
 import signal
 import time
+import typing
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -40,10 +41,12 @@ from terrashift_rl.training.checkpoint import (
 )
 from terrashift_rl.training.evaluation import evaluate_periodically
 from terrashift_rl.training.trainer import (
+    LOSS_SETTINGS,
     MAPOCATrainer,
     TrainConfig,
     iterate_until,
     make_training_env,
+    setting_name,
 )
 
 __all__ = [
@@ -54,10 +57,13 @@ __all__ = [
     "RUN_SETTINGS",
     "TEXT",
     "WEIGHTS_KEYS",
+    "LossSettings",
     "StopRequest",
+    "TrainSettings",
     "check_resumable",
     "check_settings",
     "cpu_overrides",
+    "fields_of",
     "integer",
     "one_of",
     "or_null",
@@ -66,15 +72,73 @@ __all__ = [
     "run_training",
     "size_for_the_machine",
     "structured",
+    "train_config_of",
 ]
 
 
+def fields_of(cls: type, names: Sequence[str], name: str) -> type:
+    """A dataclass named ``name`` with the fields ``names`` of the dataclass ``cls``: their
+    types and defaults, so a schema for part of ``cls`` takes them from ``cls`` alone.
+
+    Example:
+        >>> fields_of(TrainConfig, ["gamma", "lmbda"], "Discounting")()
+        Discounting(gamma=0.95, lmbda=0.92)
+    """
+    types = typing.get_type_hints(cls)
+    fields = {field.name: field for field in dataclasses.fields(cls)}
+    return dataclasses.make_dataclass(
+        name,
+        [
+            (
+                field,
+                types[field],
+                dataclasses.field(
+                    default=fields[field].default, default_factory=fields[field].default_factory
+                ),
+            )
+            for field in names
+        ],
+    )
+
+
+TrainSettings = fields_of(
+    TrainConfig,
+    [field.name for field in dataclasses.fields(TrainConfig) if field.name not in LOSS_SETTINGS],
+    "TrainSettings",
+)
+TrainSettings.__module__ = __name__
+TrainSettings.__doc__ = """The ``train`` config group's schema: the fields of
+:class:`~terrashift_rl.training.trainer.TrainConfig` outside
+:data:`~terrashift_rl.training.trainer.LOSS_SETTINGS`."""
+LossSettings = fields_of(TrainConfig, LOSS_SETTINGS, "LossSettings")
+LossSettings.__module__ = __name__
+LossSettings.__doc__ = """The ``loss`` config group's schema: the fields of
+:class:`~terrashift_rl.training.trainer.TrainConfig` in
+:data:`~terrashift_rl.training.trainer.LOSS_SETTINGS`."""
+
+
 def register_config_schemas() -> None:
-    """Registers the ``schema`` option of the ``env`` and ``model`` config groups: the group
-    files name the fields they change, these dataclasses supply the others and their types, so
-    every field can be set as ``env.field=value`` or ``model.field=value``."""
-    ConfigStore.instance().store(group="env", name="schema", node=TerraShiftConfig)
-    ConfigStore.instance().store(group="model", name="schema", node=TerraShiftModelConfig)
+    """Registers the ``schema`` option of the ``env``, ``model``, ``train`` and ``loss`` config
+    groups: the group files name the fields they change, the dataclasses supply the others with
+    their defaults and types, so every field can be set as ``group.field=value`` and Hydra
+    refuses a key the group lacks. ``train`` and ``loss`` split the fields of
+    :class:`~terrashift_rl.training.trainer.TrainConfig` (:class:`TrainSettings`,
+    :class:`LossSettings`); ``model`` also has ``schema_small``, the typed
+    :meth:`~terrashift_rl.modules.TerraShiftModelConfig.small` preset."""
+    store = ConfigStore.instance()
+    store.store(group="env", name="schema", node=TerraShiftConfig)
+    store.store(group="model", name="schema", node=TerraShiftModelConfig)
+    store.store(group="model", name="schema_small", node=TerraShiftModelConfig.small())
+    store.store(group="train", name="schema", node=TrainSettings)
+    store.store(group="loss", name="schema", node=LossSettings)
+
+
+def train_config_of(cfg: DictConfig) -> TrainConfig:
+    """The :class:`~terrashift_rl.training.trainer.TrainConfig` that the ``train`` and ``loss``
+    config groups of ``cfg`` set; a key that its group lacks is named (:func:`structured`)."""
+    train = structured(TrainSettings, cfg.train, "train")
+    loss = structured(LossSettings, cfg.loss, "loss")
+    return TrainConfig(**dataclasses.asdict(train), **dataclasses.asdict(loss))
 
 
 def structured(cls: type, values: Any, group: str):
@@ -311,8 +375,7 @@ def check_resumable(resume: dict, configs: dict, cfg: DictConfig) -> None:
             saved = resume[name].get(key, predated[name].get(key))
             if saved == value or (name == "train_config" and key in EXECUTION_SETTINGS):
                 continue
-            prefix = group or ("loss" if key in cfg.loss else "train")
-            differ.append(override(f"{prefix}.{key}", saved))
+            differ.append(override(f"{group}.{key}" if group else setting_name(key), saved))
     if differ:
         raise ValueError(
             f"run.resume={cfg.run.resume} was trained with other settings; add "
@@ -436,11 +499,7 @@ def run_training(cfg: DictConfig, *, run_dir: Path) -> Path:
         check_settings(cfg, {"logger.mode": one_of("offline", "online")})
     env_config = structured(TerraShiftConfig, cfg.env, "env")
     model_config = structured(TerraShiftModelConfig, cfg.model, "model")
-    train_config = structured(
-        TrainConfig,
-        {**OmegaConf.to_container(cfg.train), **OmegaConf.to_container(cfg.loss)},
-        "train/loss",
-    )
+    train_config = train_config_of(cfg)
     train_config.validate()
     window, snapshot_every = cfg.run.best_window, cfg.run.snapshot_every
     eval_every, eval_episodes = cfg.run.eval_every, cfg.run.eval_episodes

@@ -1,6 +1,7 @@
 """Recipes: every config composes; the smoke config trains, resumes exactly and finetunes; without
 CUDA, run.device=auto sizes a run for the CPU. The subprocess runs are marked slow."""
 
+import dataclasses
 import json
 import os
 import shlex
@@ -13,6 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 from PIL import Image
 
@@ -23,7 +25,9 @@ from terrashift_rl.training.run import (
     check_settings,
     register_config_schemas,
     run_training,
+    train_config_of,
 )
+from terrashift_rl.training.trainer import LOSS_SETTINGS
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPES = ROOT / "recipes"
@@ -32,6 +36,11 @@ sys.path.insert(0, str(RECIPES))  # for evaluate.SETTINGS
 register_config_schemas()
 
 PRIMARY = sorted(path.stem for path in CONFIGS.glob("*.yaml"))
+
+
+def compose_config(name: str, *overrides: str):
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
+        return compose(config_name=name, overrides=list(overrides))
 
 
 def group_options() -> list[tuple[str, str]]:
@@ -59,26 +68,73 @@ def test_every_group_option_composes_into_its_dataclass(group, option):
 
     with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
         cfg = compose(config_name="mapoca_pretrain", overrides=[f"{group}={option}"])
-    if group == "algo":  # its files set train.algo
-        assert cfg.train.algo == option
-        TrainConfig(**{**cfg.train, **cfg.loss}).validate()
-        return
-    values = dict(cfg[group])
     if group == "env":
-        TerraShiftConfig(**values)
+        TerraShiftConfig(**cfg.env)
     elif group == "model":
-        TerraShiftModelConfig(**values)
-    elif group in ("train", "loss"):
-        TrainConfig(**values).validate()
+        TerraShiftModelConfig(**cfg.model)
+    elif group in ("train", "loss", "algo"):  # the algo files set train.algo
+        train_config_of(cfg).validate()
+        assert group != "algo" or cfg.train.algo == option
     else:
-        assert values["kind"] in ("wandb", "csv", "tensorboard", "none")
+        assert cfg.logger.kind in ("wandb", "csv", "tensorboard", "none")
 
 
-def test_default_train_and_loss_groups_are_train_config_defaults():
-    """The recipe's defaults and the library's TrainConfig() are the same measured setting."""
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
-        cfg = compose(config_name="mapoca_pretrain")
-    assert TrainConfig(**{**cfg.train, **cfg.loss}) == TrainConfig()
+def test_the_train_and_loss_groups_split_train_config_and_default_to_its_defaults():
+    cfg = compose_config("mapoca_pretrain")
+    train, loss = set(cfg.train), set(cfg.loss)
+    assert not train & loss
+    assert train | loss == {field.name for field in dataclasses.fields(TrainConfig)}
+    assert loss == set(LOSS_SETTINGS)
+    default = TrainConfig()
+    for name in sorted(train | loss):
+        group = cfg.loss if name in loss else cfg.train
+        assert group[name] == getattr(default, name), name
+    assert train_config_of(cfg) == default
+
+
+@pytest.mark.parametrize(
+    "path",
+    sorted(
+        path
+        for group in ("env", "model", "train", "loss")
+        for path in (CONFIGS / group).glob("*.yaml")
+    ),
+    ids=lambda path: f"{path.parent.name}/{path.stem}",
+)
+def test_a_group_file_sets_only_what_differs_from_its_schema(path):
+    """A file that repeats a schema default would be a second place to change it."""
+    group = path.parent.name
+    values = OmegaConf.to_container(OmegaConf.load(path))
+    schema, last = values.pop("defaults")
+    assert schema.startswith("schema") and last == "_self_"
+    cfg = compose_config("mapoca_pretrain", f"{group}={schema}")
+    repeated = sorted(key for key, value in values.items() if cfg[group][key] == value)
+    assert not repeated, f"{path.name} repeats the schema's defaults of {repeated}"
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("train.nope=1", "Key 'nope' not in 'TrainSettings'"),
+        ("loss.nope=1", "Key 'nope' not in 'LossSettings'"),
+        ("train.gamma=0.9", "Key 'gamma' not in 'TrainSettings'"),  # a loss setting
+        ("loss.num_envs=8", "Key 'num_envs' not in 'LossSettings'"),  # a train setting
+        ("train.num_envs=many", "Value 'many' of type 'str' could not be converted to Integer"),
+        ("loss.normalize_value=maybe", "Value 'maybe' is not a valid bool"),
+    ],
+)
+def test_hydra_refuses_a_train_or_loss_key_the_group_lacks_or_a_value_of_the_wrong_type(
+    override, message
+):
+    with pytest.raises(ConfigCompositionException) as error:
+        compose_config("mapoca_pretrain", override)
+    assert override.split("=")[0] in str(error.value)  # the key as the command line gave it
+    assert message in str(error.value.__cause__)
+
+
+def test_a_key_added_to_the_train_or_loss_group_is_refused_naming_the_group():
+    with pytest.raises(ValueError, match=r"^unknown key\(s\) \['nope'\] in config group 'loss'"):
+        train_config_of(compose_config("mapoca_pretrain", "+loss.nope=1"))
 
 
 def run(
@@ -357,6 +413,7 @@ def test_best_checkpoint_and_snapshots_hold_the_weights_they_name(tmp_path):
         (["run.best_window=-1"], "run.best_window"),
         (["run.snapshot_every=0"], "run.snapshot_every"),
         (["+env.grid_sise=10"], "unknown key"),
+        (["train.nope=1"], "Could not override 'train.nope'"),
         (["run.resume=missing.pt"], "no checkpoint at"),
         (["logger.kind=paper"], "logger.kind"),
     ],
@@ -410,11 +467,6 @@ def test_resume_names_the_settings_that_differ_from_the_checkpoints(tmp_path):
     )
 
 
-def compose_config(name: str, *overrides: str):
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
-        return compose(config_name=name, overrides=list(overrides))
-
-
 def test_the_smoke_config_takes_every_train_setting():
     cfg = compose_config("smoke", "train.lr_trunk_policy=0.001", "train.compile=true")
     assert cfg.train.lr_trunk_policy == 0.001 and cfg.train.compile
@@ -443,10 +495,9 @@ def test_the_smoke_config_takes_every_train_setting():
         ("train.max_grad_norm_start=-1", "train.max_grad_norm_start must be"),
         ("train.schedule_iterations=0", "train.schedule_iterations must be an integer >= 1"),
         ("train.lr_end_factor=-0.1", "train.lr_end_factor must be"),
-        ("train.bf16=maybe", "train.bf16 must be true or false, got 'maybe'"),
-        ("loss.entropy_coeff_start=nan", "train.entropy_coeff_start must be .*, got nan"),
-        ("loss.clip_epsilon_start=1.5", r"train.clip_epsilon_start must be .* \(0, 1\)"),
-        ("loss.value_coeff=-1", r"train.value_coeff must be a finite number in \[0, inf\)"),
+        ("loss.entropy_coeff_start=nan", "loss.entropy_coeff_start must be .*, got nan"),
+        ("loss.clip_epsilon_start=1.5", r"loss.clip_epsilon_start must be .* \(0, 1\)"),
+        ("loss.value_coeff=-1", r"loss.value_coeff must be a finite number in \[0, inf\)"),
         ("env.num_agents=0", "num_agents must be an integer >= 1"),
     ],
 )

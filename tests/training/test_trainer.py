@@ -23,6 +23,7 @@ from terrashift_rl.training import (
     make_training_env,
 )
 from terrashift_rl.training.graphs import CudaGraphed
+from terrashift_rl.training.trainer import setting_name
 
 ENV = TerraShiftConfig(
     grid_size=8,
@@ -174,7 +175,7 @@ def test_no_teacher_by_default():
 )
 def test_bad_teacher_settings_are_refused(field, value):
     TrainConfig().validate()
-    with pytest.raises(ValueError, match=f"train.{field}"):
+    with pytest.raises(ValueError, match=f"loss.{field}"):
         TrainConfig(**{field: value}).validate()
 
 
@@ -375,7 +376,7 @@ def test_bad_learning_rate_settings_are_refused(field, value):
 
 @pytest.mark.parametrize("field", [field.name for field in dataclasses.fields(TrainConfig)])
 def test_every_setting_of_the_wrong_type_is_refused_by_name(field):
-    with pytest.raises(ValueError, match=rf"^train\.{field} .*got 'junk'"):
+    with pytest.raises(ValueError, match=rf"^{setting_name(field)} .*got 'junk'"):
         TrainConfig(**{field: "junk"}).validate()
 
 
@@ -413,7 +414,8 @@ def test_every_setting_of_the_wrong_type_is_refused_by_name(field):
     ],
 )
 def test_a_setting_outside_its_range_is_refused_with_the_range(field, value, allowed):
-    with pytest.raises(ValueError, match=rf"^train\.{field} must be .*{allowed}, got {value!r}"):
+    message = rf"^{setting_name(field)} must be .*{allowed}, got {value!r}"
+    with pytest.raises(ValueError, match=message):
         TrainConfig(**{field: value}).validate()
 
 
