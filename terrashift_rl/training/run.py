@@ -53,6 +53,7 @@ __all__ = [
     "BOOLEAN",
     "OVERRIDES",
     "POSITIVE",
+    "RENAMED_TRAIN_SETTINGS",
     "RESUME_KEYS",
     "RUN_SETTINGS",
     "TEXT",
@@ -335,6 +336,13 @@ EXECUTION_SETTINGS = ("bf16", "tf32", "compile", "cuda_graphs", "deterministic")
 INITIALISATION_SETTINGS = ("policy_output_gain",)
 
 
+RENAMED_TRAIN_SETTINGS = {
+    "value_clip_start": "clip_value_start",
+    "value_clip_end": "clip_value_end",
+}
+"""Earlier name -> name of the training settings renamed since checkpoints were first written."""
+
+
 def network_settings(model_config: dict) -> dict:
     """The model settings a checkpoint's weights depend on (``INITIALISATION_SETTINGS`` aside,
     so checkpoints from before such a setting existed still load)."""
@@ -361,9 +369,15 @@ def override(key: str, value: Any) -> str:
 def check_resumable(resume: dict, configs: dict, cfg: DictConfig) -> None:
     """Raises unless the checkpoint ``resume`` was trained with ``configs`` (env, model, train
     and loss settings, execution and initialisation settings aside), naming the overrides that
-    would continue it."""
+    would continue it. A training setting saved under an earlier name
+    (:data:`RENAMED_TRAIN_SETTINGS`) is compared under its name now."""
     differ = []
     configs = {**configs, "model_config": network_settings(configs["model_config"])}
+    saved_train = resume["train_config"].items()
+    resume = {
+        **resume,
+        "train_config": {RENAMED_TRAIN_SETTINGS.get(k, k): v for k, v in saved_train},
+    }
     # a training setting the checkpoint predates was trained at its default
     predated = {
         "env_config": {},

@@ -101,13 +101,22 @@ class TrainConfig:
     weight_decay: float = 0.01
     """AdamW weight decay."""
     clip_epsilon_start: float = 0.2
+    """Clip range of the policy's probability ratio (the loss's ``clip_epsilon``) at the start."""
     clip_epsilon_end: float = 0.1
+    """Clip range of the probability ratio after ``schedule_iterations`` updates."""
     entropy_coeff_start: float = 0.001
+    """Weight of the entropy bonus (the loss's ``entropy_coeff``) at the start."""
     entropy_coeff_end: float = 0.001
-    value_clip_start: float = 0.3
-    value_clip_end: float = 0.1
+    """Weight of the entropy bonus after ``schedule_iterations`` updates."""
+    clip_value_start: float = 0.3
+    """Clip range of the critics' estimates around those at collection (the loss's
+    ``clip_value``, as in torchrl's ``ClipPPOLoss``) at the start."""
+    clip_value_end: float = 0.1
+    """Clip range of the critics' estimates after ``schedule_iterations`` updates."""
     max_grad_norm_start: float = 5.0
+    """Gradient-norm clip of every update at the start."""
     max_grad_norm_end: float = 0.5
+    """Gradient-norm clip after ``schedule_iterations`` updates."""
     schedule_iterations: int = 1000
     """Updates over which every schedule runs from start to end."""
     teacher_coeff: float = 0.0
@@ -176,8 +185,8 @@ class TrainConfig:
             "desired_kl",
             "lr_min",
             "lr_max",
-            "value_clip_start",
-            "value_clip_end",
+            "clip_value_start",
+            "clip_value_end",
             "max_grad_norm_start",
             "max_grad_norm_end",
         ):
@@ -252,8 +261,8 @@ LOSS_SETTINGS = (
     "clip_epsilon_end",
     "entropy_coeff_start",
     "entropy_coeff_end",
-    "value_clip_start",
-    "value_clip_end",
+    "clip_value_start",
+    "clip_value_end",
     "value_coeff",
     "baseline_coeff",
     "normalize_value",
@@ -383,7 +392,7 @@ class OnPolicyTrainer:
             "entropy_coeff": LinearSchedule(
                 config.entropy_coeff_start, config.entropy_coeff_end, n
             ),
-            "clip_value": LinearSchedule(config.value_clip_start, config.value_clip_end, n),
+            "clip_value": LinearSchedule(config.clip_value_start, config.clip_value_end, n),
             "max_grad_norm": LinearSchedule(
                 config.max_grad_norm_start, config.max_grad_norm_end, n
             ),

@@ -448,6 +448,20 @@ def test_resume_ignores_settings_that_only_set_the_initial_weights():
         check_resumable(wider, configs, cfg)
 
 
+def test_resume_reads_a_setting_saved_under_its_earlier_name():
+    cfg = compose_config("smoke")
+    configs = {
+        "env_config": {"grid_size": 15},
+        "model_config": {"embed_dim": 32},
+        "train_config": {"clip_value_start": 0.3, "clip_value_end": 0.1},
+    }
+    saved = {"value_clip_start": 0.3, "value_clip_end": 0.1}  # before the rename
+    check_resumable({**configs, "train_config": saved}, configs, cfg)
+    wider = {**saved, "value_clip_start": 0.5}
+    with pytest.raises(ValueError, match="add loss.clip_value_start=0.5 to continue"):
+        check_resumable({**configs, "train_config": wider}, configs, cfg)
+
+
 @pytest.mark.slow
 def test_resume_names_the_settings_that_differ_from_the_checkpoints(tmp_path):
     first = run("mapoca_pretrain.py", "train.minibatches=1", "hydra.run.dir=b", cwd=tmp_path)

@@ -394,13 +394,13 @@ def test_every_setting_of_the_wrong_type_is_refused_by_name(field):
         # zero
         ("schedule_iterations", 0, "an integer >= 1"),
         ("max_grad_norm_end", 0.0, r"in \(0, inf\)"),
-        ("value_clip_start", 0.0, r"in \(0, inf\)"),
+        ("clip_value_start", 0.0, r"in \(0, inf\)"),
         ("clip_epsilon_end", 0.0, r"in \(0, 1\)"),
         ("gamma", 0.0, r"in \(0, 1\]"),
         # NaN and infinity
         ("entropy_coeff_start", float("nan"), r"in \[0, inf\)"),
         ("lr_trunk_policy", float("nan"), r"in \(0, inf\)"),
-        ("value_clip_end", float("inf"), r"in \(0, inf\)"),
+        ("clip_value_end", float("inf"), r"in \(0, inf\)"),
         ("teacher_coeff", float("inf"), r"in \[0, inf\)"),
         ("lmbda", float("nan"), r"in \[0, 1\]"),
         # above a range
