@@ -302,31 +302,54 @@ def cpu_overrides(defaults: Sequence[str], given: Sequence[str]) -> list[str]:
     ]
 
 
-def size_for_the_machine(cfg: DictConfig, *, device_key: str, defaults_key: str) -> DictConfig:
+def size_for_the_machine(
+    cfg: DictConfig, *, device_key: str, defaults_key: str, model_from: Sequence[str] = ()
+) -> DictConfig:
     """``cfg``, recomposed with the CPU-sized overrides ``defaults_key`` lists
     (:func:`cpu_overrides`) when ``device_key`` is ``auto`` on a machine without CUDA; says so in
     one line. Settings given on the command line are kept; ``device_key=cpu`` keeps them all.
+
+    ``model_from`` names the settings of checkpoints whose weights the run loads (``run.resume``,
+    ``run.pretrained``): the first one set gives the model settings, on any device, for the
+    network must be the one it holds. They rank like the CPU-sized overrides (``model=small``
+    gives way to them), below the command line: a model given there is built as given.
     Needs Hydra's app context (``@hydra.main``): the command line is its task overrides."""
-    if OmegaConf.select(cfg, device_key) != "auto" or torch.cuda.is_available():
+    sizing = OmegaConf.select(cfg, device_key) == "auto" and not torch.cuda.is_available()
+    source = next((key for key in model_from if isinstance(OmegaConf.select(cfg, key), str)), None)
+    if not sizing and source is None:
         return cfg
-    check_settings(cfg, {defaults_key: OVERRIDES})
-    defaults = list(OmegaConf.select(cfg, defaults_key))
     hydra_config = HydraConfig.get()
     given = list(hydra_config.overrides.task)
-    try:
-        sized = cpu_overrides(defaults, given)
-    except OverrideParseException as error:
-        raise ValueError(
-            f"{defaults_key}={defaults} holds an override Hydra cannot read: {error}"
-        ) from None
-    if not sized:
-        print("no CUDA device: running on the CPU with the configured sizes")
+    pinned, changed = [], []
+    if source is not None:
+        saved = load_checkpoint(OmegaConf.select(cfg, source), required=("model_config",))
+        model = {key: value for key, value in saved["model_config"].items() if key in cfg.model}
+        texts = {hydra_override(f"model.{key}", value): key for key, value in model.items()}
+        pinned = cpu_overrides(list(texts), given)
+        changed = [texts[text] for text in pinned if cfg.model[texts[text]] != model[texts[text]]]
+    sized = []
+    if sizing:
+        check_settings(cfg, {defaults_key: OVERRIDES})
+        defaults = list(OmegaConf.select(cfg, defaults_key))
+        try:
+            sized = cpu_overrides(defaults, [*pinned, *given])
+        except OverrideParseException as error:
+            raise ValueError(
+                f"{defaults_key}={defaults} holds an override Hydra cannot read: {error}"
+            ) from None
+        note = f" with the model of {source}" if pinned else ""
+        if sized:
+            print(
+                f"no CUDA device: a CPU-sized run ({' '.join(sized)}){note}; set {device_key}=cpu "
+                "to keep the configured sizes"
+            )
+        else:
+            print(f"no CUDA device: running on the CPU with the configured sizes{note}")
+    elif changed:
+        print(f"the model of {source}: it differs from the configured one in {', '.join(changed)}")
+    if not sized and not changed:
         return cfg
-    print(
-        f"no CUDA device: a CPU-sized run ({' '.join(sized)}); set {device_key}=cpu to keep the "
-        "configured sizes"
-    )
-    return compose(config_name=hydra_config.job.config_name, overrides=[*sized, *given])
+    return compose(config_name=hydra_config.job.config_name, overrides=[*sized, *pinned, *given])
 
 
 # --- resuming ------------------------------------------------------------------------------------
@@ -349,12 +372,12 @@ def network_settings(model_config: dict) -> dict:
     return {k: v for k, v in model_config.items() if k not in INITIALISATION_SETTINGS}
 
 
-def override(key: str, value: Any) -> str:
-    """``key=value`` as Hydra reads it back as ``value``, quoted for a shell where needed.
+def hydra_override(key: str, value: Any) -> str:
+    """``key=value`` as Hydra reads it back as ``value``.
 
     Example:
-        >>> print(override("env.column_shape", "box"), override("model.cnn_channels", [8, 16]))
-        env.column_shape=box 'model.cnn_channels=[8,16]'
+        >>> print(hydra_override("env.column_shape", "box"), hydra_override("model.gain", 0.5))
+        env.column_shape=box model.gain=0.5
     """
     text = json.dumps(value, separators=(",", ":"))  # null, true, [4,8,8], "box"
     if isinstance(value, str):
@@ -363,7 +386,17 @@ def override(key: str, value: Any) -> str:
                 text = value
         except OverrideParseException:
             pass
-    return shlex.quote(f"{key}={text}")
+    return f"{key}={text}"
+
+
+def override(key: str, value: Any) -> str:
+    """:func:`hydra_override`, quoted for a shell where needed.
+
+    Example:
+        >>> print(override("env.column_shape", "box"), override("model.cnn_channels", [8, 16]))
+        env.column_shape=box 'model.cnn_channels=[8,16]'
+    """
+    return shlex.quote(hydra_override(key, value))
 
 
 def check_resumable(resume: dict, configs: dict, cfg: DictConfig) -> None:
@@ -542,7 +575,8 @@ def run_training(cfg: DictConfig, *, run_dir: Path) -> Path:
         ):
             raise ValueError(
                 f"run.pretrained={cfg.run.pretrained} holds a network of another shape; use the "
-                "model settings it was trained with"
+                "model settings it was trained with (the recipes do when the command line sets "
+                "none)"
             )
     env = make_training_env(
         env_config, networks, num_envs=train_config.num_envs, device=device, seed=cfg.run.seed

@@ -265,6 +265,61 @@ def test_without_cuda_auto_sizes_a_run_for_the_cpu_but_what_the_command_line_set
 
 @pytest.mark.slow
 @without_cuda
+def test_without_cuda_finetuning_builds_the_network_of_its_checkpoint(tmp_path):
+    # a checkpoint of another model than the CPU-sized run's model=small
+    pretrained = run(
+        "mapoca_pretrain.py",
+        "model=medium",
+        "run.total_env_steps=1",
+        "hydra.run.dir=a",
+        cwd=tmp_path,
+    )
+    assert pretrained.returncode == 0, pretrained.stderr
+    finetune = [
+        "mapoca_finetune.py",
+        "run.pretrained=a/checkpoints/last.pt",
+        "env=smoke",
+        "train.steps_per_iteration=8",
+        "run.total_env_steps=1",
+        "run.eval_every=null",
+        "logger=none",
+    ]
+    result = run(*finetune, "hydra.run.dir=b", cwd=tmp_path, config_name=None)
+    assert result.returncode == 0, result.stderr
+    assert (
+        "no CUDA device: a CPU-sized run (train.num_envs=32 run.eval_episodes=16) with the model "
+        "of run.pretrained; set run.device=cpu to keep the configured sizes"
+    ) in result.stdout
+    saved = load_checkpoint(tmp_path / "a/checkpoints/last.pt")["model_config"]
+    assert load_checkpoint(tmp_path / "b/checkpoints/last.pt")["model_config"] == saved
+    assert OmegaConf.to_container(OmegaConf.load(tmp_path / "b/config.yaml").model) == saved
+    # resuming it on the CPU takes the model of its checkpoint too
+    more = ("run.total_env_steps=512", "run.resume=b/checkpoints/last.pt", "hydra.run.dir=c")
+    resumed = run(*finetune, *more, cwd=tmp_path, config_name=None)
+    assert resumed.returncode == 0, resumed.stderr
+    assert load_checkpoint(tmp_path / "c/checkpoints/last.pt")["iteration"] == 2
+    # a model the command line sets is built as given, and refused when it differs
+    given = run(*finetune, "model=small", "hydra.run.dir=d", cwd=tmp_path, config_name=None)
+    assert given.returncode != 0
+    assert "holds a network of another shape" in given.stderr
+    # with the configured sizes (as on a GPU), the checkpoint's model replaces the configured one
+    configured = run(
+        *finetune,
+        "run.device=cpu",
+        "train=smoke",
+        "hydra.run.dir=e",
+        cwd=tmp_path,
+        config_name=None,
+    )
+    assert configured.returncode == 0, configured.stderr
+    assert "the model of run.pretrained: it differs from the configured one in embed_dim" in (
+        configured.stdout
+    )
+    assert load_checkpoint(tmp_path / "e/checkpoints/last.pt")["model_config"] == saved
+
+
+@pytest.mark.slow
+@without_cuda
 @pytest.mark.parametrize(
     ("overrides", "episodes", "line"),
     [
