@@ -76,7 +76,7 @@ def profile(config: TerraShiftConfig, num_envs: int, device: torch.device) -> di
     steps = 10
     sim = Simulator(config, num_envs=num_envs, device=device, seed=0, cuda_graph=False)
     sim.reset()
-    action = torch.zeros(sim.shape, device=device)
+    action = torch.zeros(sim.action_shape, device=device)
     for _ in range(3):
         sim.step(action)
     wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)

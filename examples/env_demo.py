@@ -33,7 +33,7 @@ def main() -> None:
     goals = lost = 0
     start = time.perf_counter()
     for _ in tqdm(range(args.steps), desc="random policy", unit="step"):
-        action = torch.rand(env.sim.shape, device=env.device, generator=generator) * 2 - 1
+        action = torch.rand(env.sim.action_shape, device=env.device, generator=generator) * 2 - 1
         td[GROUP, "action"] = action
         out, td = env.step_and_maybe_reset(td)
         nxt = out["next"]

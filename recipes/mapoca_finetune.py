@@ -3,7 +3,9 @@
     python recipes/mapoca_finetune.py run.pretrained=<pretrain run>/checkpoints/last.pt
     python recipes/mapoca_finetune.py run.pretrained=last.pt run.minutes=5 train.num_envs=1024
 
-The networks are size-agnostic: the same weights run 15x15 with 8 agents and 30x30 with 16.
+The networks are size-agnostic: the same weights run 15x15 with 8 agents and 30x30 with 16. The
+model settings are the checkpoint's (unless the command line sets them), also on a CPU, where
+they replace run.cpu_defaults' model=small.
 Config: recipes/configs/mapoca_finetune.yaml (the pretraining config with env=finetune).
 Training itself is the pretraining recipe's run (:func:`terrashift_rl.training.run.run_training`),
 started from the pretrained weights with a fresh optimiser and fresh schedules.
@@ -29,7 +31,12 @@ def main(cfg: DictConfig) -> None:
             "finetuning needs run.pretrained=<pretraining checkpoint> (or run.resume=<a "
             "finetuning checkpoint> to continue one)"
         )
-    cfg = size_for_the_machine(cfg, device_key="run.device", defaults_key="run.cpu_defaults")
+    cfg = size_for_the_machine(
+        cfg,
+        device_key="run.device",
+        defaults_key="run.cpu_defaults",
+        model_from=("run.resume", "run.pretrained"),  # the network must be the one they hold
+    )
     run_training(cfg, run_dir=Path(HydraConfig.get().runtime.output_dir))
 
 

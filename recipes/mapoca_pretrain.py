@@ -6,7 +6,8 @@
 
 Config: recipes/configs/mapoca_pretrain.yaml (groups env, model, train, loss, logger). Without a
 CUDA device, run.device=auto sizes the run for the CPU (run.cpu_defaults) where the command line
-leaves a setting alone. Outputs (checkpoints, logs, resolved config) go to Hydra's run directory.
+leaves a setting alone; a run from a checkpoint (run.resume, run.pretrained) builds its model.
+Outputs (checkpoints, logs, resolved config) go to Hydra's run directory.
 The run itself, config -> setup -> train loop -> cleanup, is
 :func:`terrashift_rl.training.run.run_training`.
 """
@@ -26,7 +27,12 @@ register_config_schemas()
 
 @hydra.main(version_base=None, config_path="configs", config_name="mapoca_pretrain")
 def main(cfg: DictConfig) -> None:
-    cfg = size_for_the_machine(cfg, device_key="run.device", defaults_key="run.cpu_defaults")
+    cfg = size_for_the_machine(
+        cfg,
+        device_key="run.device",
+        defaults_key="run.cpu_defaults",
+        model_from=("run.resume", "run.pretrained"),  # the network must be the one they hold
+    )
     run_training(cfg, run_dir=Path(HydraConfig.get().runtime.output_dir))
 
 

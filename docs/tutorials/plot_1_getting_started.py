@@ -77,7 +77,7 @@ print("out of bounds so far:", rollout["next", "episode_out_of_bounds"][:, -1, 0
 generator = torch.Generator().manual_seed(0)
 td = env.reset()
 for _ in range(8):
-    td[GROUP, "action"] = torch.rand(env.sim.shape, generator=generator) * 2 - 1
+    td[GROUP, "action"] = torch.rand(env.sim.action_shape, generator=generator) * 2 - 1
     out, td = env.step_and_maybe_reset(td)
 print("last team reward:", out["next", GROUP, "reward"][:, 0, 0])
 

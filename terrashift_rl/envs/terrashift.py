@@ -171,7 +171,7 @@ class TerraShiftEnv(EnvBase):
     def _checked_action(self, tensordict: TensorDictBase) -> torch.Tensor:
         key = (GROUP, "action")
         action = tensordict.get(key, None)
-        expected = self.sim.shape
+        expected = self.sim.action_shape
         if action is None:
             raise ValueError(f"the input tensordict has no {key} entry")
         if tuple(action.shape) != expected:

@@ -108,7 +108,7 @@ def try_spawn(
 @wp.kernel
 def reset_episodes(
     model: Model,
-    env_mask: wp.array(dtype=wp.bool),
+    reset_mask: wp.array(dtype=wp.bool),
     rng: wp.array(dtype=wp.uint32),
     agent_position: wp.array2d(dtype=wp.vec2),
     agent_velocity: wp.array2d(dtype=wp.vec2),
@@ -126,10 +126,10 @@ def reset_episodes(
     episode_goals: wp.array(dtype=wp.int32),
     episode_out_of_bounds: wp.array(dtype=wp.int32),
 ):
-    """Starts a new episode where ``env_mask`` is set: random wavelets and goals, spheres
+    """Starts a new episode where ``reset_mask`` is set: random wavelets and goals, spheres
     queued to spawn ``respawn_ticks`` apart. Launch dim: [num_envs]."""
     e = wp.tid()
-    if not env_mask[e]:
+    if not reset_mask[e]:
         return
     g = float(model.grid_size)
     for k in range(model.num_agents):
@@ -171,7 +171,7 @@ def reset_episodes(
 @wp.kernel
 def spawn_due(
     model: Model,
-    env_mask: wp.array(dtype=wp.bool),
+    reset_mask: wp.array(dtype=wp.bool),
     rng: wp.array(dtype=wp.uint32),
     height: wp.array3d(dtype=float),
     goal_cell: wp.array2d(dtype=wp.vec2i),
@@ -182,10 +182,10 @@ def spawn_due(
     angular_velocity: wp.array2d(dtype=wp.vec3),
     goal_distance: wp.array2d(dtype=float),
 ):
-    """Spawns the spheres whose timer is zero, where ``env_mask`` is set (after a reset, so the
+    """Spawns the spheres whose timer is zero, where ``reset_mask`` is set (after a reset, so the
     first observation already holds them). Launch dim: [num_envs]."""
     e = wp.tid()
-    if not env_mask[e]:
+    if not reset_mask[e]:
         return
     for j in range(model.num_objects):
         if active[e, j] == 0 and spawn_timer[e, j] == 0:

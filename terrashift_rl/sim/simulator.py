@@ -19,6 +19,8 @@ from terrashift_rl.sim.types import ACTION_DIM, Data, build_model
 
 _KERNEL_MODULES = (wave, physics, events, observations)
 _INT32_MAX = 2**31 - 1
+_RENAMED_ARRAYS = {"env_mask": "reset_mask"}
+"""Earlier name -> name of the data arrays renamed since checkpoints were first written."""
 
 
 @wp.kernel
@@ -103,7 +105,9 @@ class Simulator:
         }
 
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
-        """Restores a :meth:`state_dict`; shapes must match this simulator's."""
+        """Restores a :meth:`state_dict`; shapes must match this simulator's. Arrays saved under
+        an earlier name (``_RENAMED_ARRAYS``) load into the array that has it now."""
+        state = {_RENAMED_ARRAYS.get(name, name): value for name, value in state.items()}
         missing = sorted(set(self.state_dict()) - set(state))
         if missing:
             raise ValueError(f"simulator state lacks {missing}")
@@ -125,7 +129,7 @@ class Simulator:
 
     def reset(self, mask: torch.Tensor | None = None) -> None:
         """Starts new episodes where ``mask`` (bool, [num_envs]) is True; all if None."""
-        target = self.view("env_mask")
+        target = self.view("reset_mask")
         if mask is None:
             target.fill_(True)
         else:
@@ -164,8 +168,8 @@ class Simulator:
             self._launch_observations()
 
     @property
-    def shape(self) -> tuple[int, int, int]:
-        """(num_envs, K agents, action dimension)."""
+    def action_shape(self) -> tuple[int, int, int]:
+        """Shape of :meth:`step`'s action: (num_envs, K agents, action dimension)."""
         return self.num_envs, self.config.num_agents, ACTION_DIM
 
     # --- launch order ---------------------------------------------------------------------
@@ -206,7 +210,7 @@ class Simulator:
             dim=n,
             inputs=[
                 m,
-                d.env_mask,
+                d.reset_mask,
                 d.rng,
                 d.agent_position,
                 d.agent_velocity,
@@ -231,7 +235,7 @@ class Simulator:
             dim=n,
             inputs=[
                 m,
-                d.env_mask,
+                d.reset_mask,
                 d.rng,
                 d.column_height,
                 d.goal_cell,
@@ -246,7 +250,7 @@ class Simulator:
         self._launch_observations()
 
     def _launch_heights(self, *, masked: bool, keep_velocity: bool) -> None:
-        """Column heights from the wavelets: every environment, or those in ``env_mask``;
+        """Column heights from the wavelets: every environment, or those in ``reset_mask``;
         moving from the previous heights over the tick, or at rest (after a reset)."""
         d, g = self.data, self.config.grid_size
         wp.launch(
@@ -254,7 +258,7 @@ class Simulator:
             dim=(self.num_envs, g, g),
             inputs=[
                 self.model,
-                d.env_mask,
+                d.reset_mask,
                 int(masked),
                 int(keep_velocity),
                 d.agent_position,

@@ -311,7 +311,7 @@ class Data:
         """Goals reached since the last reset, shape [num_envs]."""
         self.episode_out_of_bounds = zeros(n, wp.int32)
         """Objects lost out of bounds since the last reset, shape [num_envs]."""
-        self.env_mask = zeros(n, wp.bool)
+        self.reset_mask = zeros(n, wp.bool)
         """Environments selected for a reset, shape [num_envs]."""
         # observations
         self.heightmap = zeros((n, 1, r, r))

@@ -106,7 +106,7 @@ def update_agents(
 @wp.kernel
 def compute_heights(
     model: Model,
-    env_mask: wp.array(dtype=wp.bool),
+    reset_mask: wp.array(dtype=wp.bool),
     use_mask: int,
     keep_velocity: int,
     position: wp.array2d(dtype=wp.vec2),
@@ -122,7 +122,7 @@ def compute_heights(
     between the two over the tick); otherwise both get the new heights (columns at rest).
     """
     e, iy, ix = wp.tid()
-    if use_mask != 0 and not env_mask[e]:
+    if use_mask != 0 and not reset_mask[e]:
         return
     g = float(model.grid_size)
     total = float(0.0)

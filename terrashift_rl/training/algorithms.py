@@ -210,7 +210,7 @@ def make_mapoca(networks: TerraShiftNetworks, config: TrainConfig) -> Algorithm:
         entropy_coeff=config.entropy_coeff_start,
         value_coeff=config.value_coeff,
         baseline_coeff=config.baseline_coeff,
-        clip_value=config.value_clip_start,
+        clip_value=config.clip_value_start,
         value_normalizer=normalizer,
         teacher_coeff=config.teacher_coeff or None,
     ).to(device)
@@ -250,7 +250,7 @@ def _make_ppo(
         clip_epsilon=config.clip_epsilon_start,
         entropy_coeff=config.entropy_coeff_start,
         critic_coeff=config.value_coeff,
-        clip_value=config.value_clip_start,
+        clip_value=config.clip_value_start,
         # standardised once per collected batch by the estimator, as MA-POCA's are
         normalize_advantage=False,
         # the networks hold their parameters, shared with the trainer's optimiser

@@ -17,6 +17,7 @@ import math
 import shlex
 import signal
 import time
+import typing
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -40,24 +41,30 @@ from terrashift_rl.training.checkpoint import (
 )
 from terrashift_rl.training.evaluation import evaluate_periodically
 from terrashift_rl.training.trainer import (
+    LOSS_SETTINGS,
     MAPOCATrainer,
     TrainConfig,
     iterate_until,
     make_training_env,
+    setting_name,
 )
 
 __all__ = [
     "BOOLEAN",
     "OVERRIDES",
     "POSITIVE",
+    "RENAMED_TRAIN_SETTINGS",
     "RESUME_KEYS",
     "RUN_SETTINGS",
     "TEXT",
     "WEIGHTS_KEYS",
+    "LossSettings",
     "StopRequest",
+    "TrainSettings",
     "check_resumable",
     "check_settings",
     "cpu_overrides",
+    "fields_of",
     "integer",
     "one_of",
     "or_null",
@@ -66,15 +73,73 @@ __all__ = [
     "run_training",
     "size_for_the_machine",
     "structured",
+    "train_config_of",
 ]
 
 
+def fields_of(cls: type, names: Sequence[str], name: str) -> type:
+    """A dataclass named ``name`` with the fields ``names`` of the dataclass ``cls``: their
+    types and defaults, so a schema for part of ``cls`` takes them from ``cls`` alone.
+
+    Example:
+        >>> fields_of(TrainConfig, ["gamma", "lmbda"], "Discounting")()
+        Discounting(gamma=0.95, lmbda=0.92)
+    """
+    types = typing.get_type_hints(cls)
+    fields = {field.name: field for field in dataclasses.fields(cls)}
+    return dataclasses.make_dataclass(
+        name,
+        [
+            (
+                field,
+                types[field],
+                dataclasses.field(
+                    default=fields[field].default, default_factory=fields[field].default_factory
+                ),
+            )
+            for field in names
+        ],
+    )
+
+
+TrainSettings = fields_of(
+    TrainConfig,
+    [field.name for field in dataclasses.fields(TrainConfig) if field.name not in LOSS_SETTINGS],
+    "TrainSettings",
+)
+TrainSettings.__module__ = __name__
+TrainSettings.__doc__ = """The ``train`` config group's schema: the fields of
+:class:`~terrashift_rl.training.trainer.TrainConfig` outside
+:data:`~terrashift_rl.training.trainer.LOSS_SETTINGS`."""
+LossSettings = fields_of(TrainConfig, LOSS_SETTINGS, "LossSettings")
+LossSettings.__module__ = __name__
+LossSettings.__doc__ = """The ``loss`` config group's schema: the fields of
+:class:`~terrashift_rl.training.trainer.TrainConfig` in
+:data:`~terrashift_rl.training.trainer.LOSS_SETTINGS`."""
+
+
 def register_config_schemas() -> None:
-    """Registers the ``schema`` option of the ``env`` and ``model`` config groups: the group
-    files name the fields they change, these dataclasses supply the others and their types, so
-    every field can be set as ``env.field=value`` or ``model.field=value``."""
-    ConfigStore.instance().store(group="env", name="schema", node=TerraShiftConfig)
-    ConfigStore.instance().store(group="model", name="schema", node=TerraShiftModelConfig)
+    """Registers the ``schema`` option of the ``env``, ``model``, ``train`` and ``loss`` config
+    groups: the group files name the fields they change, the dataclasses supply the others with
+    their defaults and types, so every field can be set as ``group.field=value`` and Hydra
+    refuses a key the group lacks. ``train`` and ``loss`` split the fields of
+    :class:`~terrashift_rl.training.trainer.TrainConfig` (:class:`TrainSettings`,
+    :class:`LossSettings`); ``model`` also has ``schema_small``, the typed
+    :meth:`~terrashift_rl.modules.TerraShiftModelConfig.small` preset."""
+    store = ConfigStore.instance()
+    store.store(group="env", name="schema", node=TerraShiftConfig)
+    store.store(group="model", name="schema", node=TerraShiftModelConfig)
+    store.store(group="model", name="schema_small", node=TerraShiftModelConfig.small())
+    store.store(group="train", name="schema", node=TrainSettings)
+    store.store(group="loss", name="schema", node=LossSettings)
+
+
+def train_config_of(cfg: DictConfig) -> TrainConfig:
+    """The :class:`~terrashift_rl.training.trainer.TrainConfig` that the ``train`` and ``loss``
+    config groups of ``cfg`` set; a key that its group lacks is named (:func:`structured`)."""
+    train = structured(TrainSettings, cfg.train, "train")
+    loss = structured(LossSettings, cfg.loss, "loss")
+    return TrainConfig(**dataclasses.asdict(train), **dataclasses.asdict(loss))
 
 
 def structured(cls: type, values: Any, group: str):
@@ -237,31 +302,54 @@ def cpu_overrides(defaults: Sequence[str], given: Sequence[str]) -> list[str]:
     ]
 
 
-def size_for_the_machine(cfg: DictConfig, *, device_key: str, defaults_key: str) -> DictConfig:
+def size_for_the_machine(
+    cfg: DictConfig, *, device_key: str, defaults_key: str, model_from: Sequence[str] = ()
+) -> DictConfig:
     """``cfg``, recomposed with the CPU-sized overrides ``defaults_key`` lists
     (:func:`cpu_overrides`) when ``device_key`` is ``auto`` on a machine without CUDA; says so in
     one line. Settings given on the command line are kept; ``device_key=cpu`` keeps them all.
+
+    ``model_from`` names the settings of checkpoints whose weights the run loads (``run.resume``,
+    ``run.pretrained``): the first one set gives the model settings, on any device, for the
+    network must be the one it holds. They rank like the CPU-sized overrides (``model=small``
+    gives way to them), below the command line: a model given there is built as given.
     Needs Hydra's app context (``@hydra.main``): the command line is its task overrides."""
-    if OmegaConf.select(cfg, device_key) != "auto" or torch.cuda.is_available():
+    sizing = OmegaConf.select(cfg, device_key) == "auto" and not torch.cuda.is_available()
+    source = next((key for key in model_from if isinstance(OmegaConf.select(cfg, key), str)), None)
+    if not sizing and source is None:
         return cfg
-    check_settings(cfg, {defaults_key: OVERRIDES})
-    defaults = list(OmegaConf.select(cfg, defaults_key))
     hydra_config = HydraConfig.get()
     given = list(hydra_config.overrides.task)
-    try:
-        sized = cpu_overrides(defaults, given)
-    except OverrideParseException as error:
-        raise ValueError(
-            f"{defaults_key}={defaults} holds an override Hydra cannot read: {error}"
-        ) from None
-    if not sized:
-        print("no CUDA device: running on the CPU with the configured sizes")
+    pinned, changed = [], []
+    if source is not None:
+        saved = load_checkpoint(OmegaConf.select(cfg, source), required=("model_config",))
+        model = {key: value for key, value in saved["model_config"].items() if key in cfg.model}
+        texts = {hydra_override(f"model.{key}", value): key for key, value in model.items()}
+        pinned = cpu_overrides(list(texts), given)
+        changed = [texts[text] for text in pinned if cfg.model[texts[text]] != model[texts[text]]]
+    sized = []
+    if sizing:
+        check_settings(cfg, {defaults_key: OVERRIDES})
+        defaults = list(OmegaConf.select(cfg, defaults_key))
+        try:
+            sized = cpu_overrides(defaults, [*pinned, *given])
+        except OverrideParseException as error:
+            raise ValueError(
+                f"{defaults_key}={defaults} holds an override Hydra cannot read: {error}"
+            ) from None
+        note = f" with the model of {source}" if pinned else ""
+        if sized:
+            print(
+                f"no CUDA device: a CPU-sized run ({' '.join(sized)}){note}; set {device_key}=cpu "
+                "to keep the configured sizes"
+            )
+        else:
+            print(f"no CUDA device: running on the CPU with the configured sizes{note}")
+    elif changed:
+        print(f"the model of {source}: it differs from the configured one in {', '.join(changed)}")
+    if not sized and not changed:
         return cfg
-    print(
-        f"no CUDA device: a CPU-sized run ({' '.join(sized)}); set {device_key}=cpu to keep the "
-        "configured sizes"
-    )
-    return compose(config_name=hydra_config.job.config_name, overrides=[*sized, *given])
+    return compose(config_name=hydra_config.job.config_name, overrides=[*sized, *pinned, *given])
 
 
 # --- resuming ------------------------------------------------------------------------------------
@@ -271,18 +359,25 @@ EXECUTION_SETTINGS = ("bf16", "tf32", "compile", "cuda_graphs", "deterministic")
 INITIALISATION_SETTINGS = ("policy_output_gain",)
 
 
+RENAMED_TRAIN_SETTINGS = {
+    "value_clip_start": "clip_value_start",
+    "value_clip_end": "clip_value_end",
+}
+"""Earlier name -> name of the training settings renamed since checkpoints were first written."""
+
+
 def network_settings(model_config: dict) -> dict:
     """The model settings a checkpoint's weights depend on (``INITIALISATION_SETTINGS`` aside,
     so checkpoints from before such a setting existed still load)."""
     return {k: v for k, v in model_config.items() if k not in INITIALISATION_SETTINGS}
 
 
-def override(key: str, value: Any) -> str:
-    """``key=value`` as Hydra reads it back as ``value``, quoted for a shell where needed.
+def hydra_override(key: str, value: Any) -> str:
+    """``key=value`` as Hydra reads it back as ``value``.
 
     Example:
-        >>> print(override("env.column_shape", "box"), override("model.cnn_channels", [8, 16]))
-        env.column_shape=box 'model.cnn_channels=[8,16]'
+        >>> print(hydra_override("env.column_shape", "box"), hydra_override("model.gain", 0.5))
+        env.column_shape=box model.gain=0.5
     """
     text = json.dumps(value, separators=(",", ":"))  # null, true, [4,8,8], "box"
     if isinstance(value, str):
@@ -291,15 +386,31 @@ def override(key: str, value: Any) -> str:
                 text = value
         except OverrideParseException:
             pass
-    return shlex.quote(f"{key}={text}")
+    return f"{key}={text}"
+
+
+def override(key: str, value: Any) -> str:
+    """:func:`hydra_override`, quoted for a shell where needed.
+
+    Example:
+        >>> print(override("env.column_shape", "box"), override("model.cnn_channels", [8, 16]))
+        env.column_shape=box 'model.cnn_channels=[8,16]'
+    """
+    return shlex.quote(hydra_override(key, value))
 
 
 def check_resumable(resume: dict, configs: dict, cfg: DictConfig) -> None:
     """Raises unless the checkpoint ``resume`` was trained with ``configs`` (env, model, train
     and loss settings, execution and initialisation settings aside), naming the overrides that
-    would continue it."""
+    would continue it. A training setting saved under an earlier name
+    (:data:`RENAMED_TRAIN_SETTINGS`) is compared under its name now."""
     differ = []
     configs = {**configs, "model_config": network_settings(configs["model_config"])}
+    saved_train = resume["train_config"].items()
+    resume = {
+        **resume,
+        "train_config": {RENAMED_TRAIN_SETTINGS.get(k, k): v for k, v in saved_train},
+    }
     # a training setting the checkpoint predates was trained at its default
     predated = {
         "env_config": {},
@@ -311,8 +422,7 @@ def check_resumable(resume: dict, configs: dict, cfg: DictConfig) -> None:
             saved = resume[name].get(key, predated[name].get(key))
             if saved == value or (name == "train_config" and key in EXECUTION_SETTINGS):
                 continue
-            prefix = group or ("loss" if key in cfg.loss else "train")
-            differ.append(override(f"{prefix}.{key}", saved))
+            differ.append(override(f"{group}.{key}" if group else setting_name(key), saved))
     if differ:
         raise ValueError(
             f"run.resume={cfg.run.resume} was trained with other settings; add "
@@ -436,11 +546,7 @@ def run_training(cfg: DictConfig, *, run_dir: Path) -> Path:
         check_settings(cfg, {"logger.mode": one_of("offline", "online")})
     env_config = structured(TerraShiftConfig, cfg.env, "env")
     model_config = structured(TerraShiftModelConfig, cfg.model, "model")
-    train_config = structured(
-        TrainConfig,
-        {**OmegaConf.to_container(cfg.train), **OmegaConf.to_container(cfg.loss)},
-        "train/loss",
-    )
+    train_config = train_config_of(cfg)
     train_config.validate()
     window, snapshot_every = cfg.run.best_window, cfg.run.snapshot_every
     eval_every, eval_episodes = cfg.run.eval_every, cfg.run.eval_episodes
@@ -469,7 +575,8 @@ def run_training(cfg: DictConfig, *, run_dir: Path) -> Path:
         ):
             raise ValueError(
                 f"run.pretrained={cfg.run.pretrained} holds a network of another shape; use the "
-                "model settings it was trained with"
+                "model settings it was trained with (the recipes do when the command line sets "
+                "none)"
             )
     env = make_training_env(
         env_config, networks, num_envs=train_config.num_envs, device=device, seed=cfg.run.seed

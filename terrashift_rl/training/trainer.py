@@ -101,13 +101,22 @@ class TrainConfig:
     weight_decay: float = 0.01
     """AdamW weight decay."""
     clip_epsilon_start: float = 0.2
+    """Clip range of the policy's probability ratio (the loss's ``clip_epsilon``) at the start."""
     clip_epsilon_end: float = 0.1
+    """Clip range of the probability ratio after ``schedule_iterations`` updates."""
     entropy_coeff_start: float = 0.001
+    """Weight of the entropy bonus (the loss's ``entropy_coeff``) at the start."""
     entropy_coeff_end: float = 0.001
-    value_clip_start: float = 0.3
-    value_clip_end: float = 0.1
+    """Weight of the entropy bonus after ``schedule_iterations`` updates."""
+    clip_value_start: float = 0.3
+    """Clip range of the critics' estimates around those at collection (the loss's
+    ``clip_value``, as in torchrl's ``ClipPPOLoss``) at the start."""
+    clip_value_end: float = 0.1
+    """Clip range of the critics' estimates after ``schedule_iterations`` updates."""
     max_grad_norm_start: float = 5.0
+    """Gradient-norm clip of every update at the start."""
     max_grad_norm_end: float = 0.5
+    """Gradient-norm clip after ``schedule_iterations`` updates."""
     schedule_iterations: int = 1000
     """Updates over which every schedule runs from start to end."""
     teacher_coeff: float = 0.0
@@ -176,8 +185,8 @@ class TrainConfig:
             "desired_kl",
             "lr_min",
             "lr_max",
-            "value_clip_start",
-            "value_clip_end",
+            "clip_value_start",
+            "clip_value_end",
             "max_grad_norm_start",
             "max_grad_norm_end",
         ):
@@ -210,7 +219,7 @@ class TrainConfig:
         ):
             value = getattr(self, name)
             if not isinstance(value, bool):
-                raise ValueError(f"train.{name} must be true or false, got {value!r}")
+                raise ValueError(f"{setting_name(name)} must be true or false, got {value!r}")
         if self.lr_schedule not in LR_SCHEDULES:
             raise ValueError(
                 f"train.lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}"
@@ -223,18 +232,18 @@ class TrainConfig:
             )
         if self.algo != "mapoca" and self.teacher_coeff:
             raise ValueError(
-                f"train.teacher_coeff is {self.teacher_coeff} but train.algo={self.algo} has no "
-                "teacher term (only mapoca has): set train.teacher_coeff=0 or train.algo=mapoca"
+                f"loss.teacher_coeff is {self.teacher_coeff} but train.algo={self.algo} has no "
+                "teacher term (only mapoca has): set loss.teacher_coeff=0 or train.algo=mapoca"
             )
         if self.algo != "mapoca" and not self.value_coeff:
             raise ValueError(
-                f"train.value_coeff is 0 but train.algo={self.algo} learns its advantages from "
-                "the value: set train.value_coeff > 0"
+                f"loss.value_coeff is 0 but train.algo={self.algo} learns its advantages from "
+                "the value: set loss.value_coeff > 0"
             )
         if self.teacher_coeff_end and not self.teacher_coeff:
             raise ValueError(
-                f"train.teacher_coeff_end is {self.teacher_coeff_end} but train.teacher_coeff "
-                f"is 0 (no teacher): set train.teacher_coeff > 0 to train with a teacher"
+                f"loss.teacher_coeff_end is {self.teacher_coeff_end} but loss.teacher_coeff "
+                f"is 0 (no teacher): set loss.teacher_coeff > 0 to train with a teacher"
             )
         if self.lr_schedule == "adaptive" and not (
             self.lr_min <= self.lr_trunk_policy <= self.lr_max
@@ -245,9 +254,40 @@ class TrainConfig:
             )
 
 
+LOSS_SETTINGS = (
+    "gamma",
+    "lmbda",
+    "clip_epsilon_start",
+    "clip_epsilon_end",
+    "entropy_coeff_start",
+    "entropy_coeff_end",
+    "clip_value_start",
+    "clip_value_end",
+    "value_coeff",
+    "baseline_coeff",
+    "normalize_value",
+    "value_norm_decay",
+    "teacher_coeff",
+    "teacher_coeff_end",
+    "teacher_iterations",
+)
+"""The :class:`TrainConfig` fields that the recipes set in their ``loss`` config group; the
+others are the ``train`` group's."""
+
+
+def setting_name(field: str) -> str:
+    """A :class:`TrainConfig` field as the recipes' config names it.
+
+    Example:
+        >>> setting_name("num_envs"), setting_name("gamma")
+        ('train.num_envs', 'loss.gamma')
+    """
+    return f"{'loss' if field in LOSS_SETTINGS else 'train'}.{field}"
+
+
 def _check_integer(name: str, value: Any, *, minimum: int) -> None:
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise ValueError(f"train.{name} must be an integer >= {minimum}, got {value!r}")
+        raise ValueError(f"{setting_name(name)} must be an integer >= {minimum}, got {value!r}")
 
 
 def _check_number(
@@ -268,7 +308,9 @@ def _check_number(
     ):
         closing = ")" if high_open or high == math.inf else "]"
         interval = f"{'(' if low_open else '['}{low:g}, {high:g}{closing}"
-        raise ValueError(f"train.{name} must be a finite number in {interval}, got {value!r}")
+        raise ValueError(
+            f"{setting_name(name)} must be a finite number in {interval}, got {value!r}"
+        )
 
 
 def make_training_env(
@@ -350,7 +392,7 @@ class OnPolicyTrainer:
             "entropy_coeff": LinearSchedule(
                 config.entropy_coeff_start, config.entropy_coeff_end, n
             ),
-            "clip_value": LinearSchedule(config.value_clip_start, config.value_clip_end, n),
+            "clip_value": LinearSchedule(config.clip_value_start, config.clip_value_end, n),
             "max_grad_norm": LinearSchedule(
                 config.max_grad_norm_start, config.max_grad_norm_end, n
             ),
@@ -530,7 +572,7 @@ class OnPolicyTrainer:
         normalizer = self.algorithm.value_normalizer
         if (normalizer is None) != (state.get("value_normalizer") is None):
             raise ValueError(
-                "the checkpoint was trained with train.normalize_value="
+                "the checkpoint was trained with loss.normalize_value="
                 f"{normalizer is None}; resume with the same setting"
             )
         if normalizer is not None:

@@ -17,7 +17,7 @@ N = 3
 
 def random_actions(steps: int, env: TerraShiftEnv, seed: int = 0) -> torch.Tensor:
     generator = torch.Generator().manual_seed(seed)
-    return torch.rand(steps, *env.sim.shape, generator=generator) * 2 - 1
+    return torch.rand(steps, *env.sim.action_shape, generator=generator) * 2 - 1
 
 
 def play(env: TerraShiftEnv, actions: torch.Tensor) -> TensorDict:
@@ -130,7 +130,7 @@ def test_goal_event_is_counted_and_rewarded_then_cleared_by_reset():
     sim.view("sphere_position")[0, 0] = torch.tensor(
         [centre(ix), centre(iy), top + cfg.sphere_radius]
     )
-    td[GROUP, "action"] = torch.zeros(sim.shape)
+    td[GROUP, "action"] = torch.zeros(sim.action_shape)
     out = env.step(td)["next"]
     assert out["episode_goals"].item() == 1
     assert not out["objects_mask"][0, 0]

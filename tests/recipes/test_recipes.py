@@ -1,6 +1,7 @@
 """Recipes: every config composes; the smoke config trains, resumes exactly and finetunes; without
 CUDA, run.device=auto sizes a run for the CPU. The subprocess runs are marked slow."""
 
+import dataclasses
 import json
 import os
 import shlex
@@ -13,6 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 from PIL import Image
 
@@ -23,7 +25,9 @@ from terrashift_rl.training.run import (
     check_settings,
     register_config_schemas,
     run_training,
+    train_config_of,
 )
+from terrashift_rl.training.trainer import LOSS_SETTINGS
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPES = ROOT / "recipes"
@@ -32,6 +36,11 @@ sys.path.insert(0, str(RECIPES))  # for evaluate.SETTINGS
 register_config_schemas()
 
 PRIMARY = sorted(path.stem for path in CONFIGS.glob("*.yaml"))
+
+
+def compose_config(name: str, *overrides: str):
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
+        return compose(config_name=name, overrides=list(overrides))
 
 
 def group_options() -> list[tuple[str, str]]:
@@ -59,26 +68,73 @@ def test_every_group_option_composes_into_its_dataclass(group, option):
 
     with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
         cfg = compose(config_name="mapoca_pretrain", overrides=[f"{group}={option}"])
-    if group == "algo":  # its files set train.algo
-        assert cfg.train.algo == option
-        TrainConfig(**{**cfg.train, **cfg.loss}).validate()
-        return
-    values = dict(cfg[group])
     if group == "env":
-        TerraShiftConfig(**values)
+        TerraShiftConfig(**cfg.env)
     elif group == "model":
-        TerraShiftModelConfig(**values)
-    elif group in ("train", "loss"):
-        TrainConfig(**values).validate()
+        TerraShiftModelConfig(**cfg.model)
+    elif group in ("train", "loss", "algo"):  # the algo files set train.algo
+        train_config_of(cfg).validate()
+        assert group != "algo" or cfg.train.algo == option
     else:
-        assert values["kind"] in ("wandb", "csv", "tensorboard", "none")
+        assert cfg.logger.kind in ("wandb", "csv", "tensorboard", "none")
 
 
-def test_default_train_and_loss_groups_are_train_config_defaults():
-    """The recipe's defaults and the library's TrainConfig() are the same measured setting."""
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
-        cfg = compose(config_name="mapoca_pretrain")
-    assert TrainConfig(**{**cfg.train, **cfg.loss}) == TrainConfig()
+def test_the_train_and_loss_groups_split_train_config_and_default_to_its_defaults():
+    cfg = compose_config("mapoca_pretrain")
+    train, loss = set(cfg.train), set(cfg.loss)
+    assert not train & loss
+    assert train | loss == {field.name for field in dataclasses.fields(TrainConfig)}
+    assert loss == set(LOSS_SETTINGS)
+    default = TrainConfig()
+    for name in sorted(train | loss):
+        group = cfg.loss if name in loss else cfg.train
+        assert group[name] == getattr(default, name), name
+    assert train_config_of(cfg) == default
+
+
+@pytest.mark.parametrize(
+    "path",
+    sorted(
+        path
+        for group in ("env", "model", "train", "loss")
+        for path in (CONFIGS / group).glob("*.yaml")
+    ),
+    ids=lambda path: f"{path.parent.name}/{path.stem}",
+)
+def test_a_group_file_sets_only_what_differs_from_its_schema(path):
+    """A file that repeats a schema default would be a second place to change it."""
+    group = path.parent.name
+    values = OmegaConf.to_container(OmegaConf.load(path))
+    schema, last = values.pop("defaults")
+    assert schema.startswith("schema") and last == "_self_"
+    cfg = compose_config("mapoca_pretrain", f"{group}={schema}")
+    repeated = sorted(key for key, value in values.items() if cfg[group][key] == value)
+    assert not repeated, f"{path.name} repeats the schema's defaults of {repeated}"
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("train.nope=1", "Key 'nope' not in 'TrainSettings'"),
+        ("loss.nope=1", "Key 'nope' not in 'LossSettings'"),
+        ("train.gamma=0.9", "Key 'gamma' not in 'TrainSettings'"),  # a loss setting
+        ("loss.num_envs=8", "Key 'num_envs' not in 'LossSettings'"),  # a train setting
+        ("train.num_envs=many", "Value 'many' of type 'str' could not be converted to Integer"),
+        ("loss.normalize_value=maybe", "Value 'maybe' is not a valid bool"),
+    ],
+)
+def test_hydra_refuses_a_train_or_loss_key_the_group_lacks_or_a_value_of_the_wrong_type(
+    override, message
+):
+    with pytest.raises(ConfigCompositionException) as error:
+        compose_config("mapoca_pretrain", override)
+    assert override.split("=")[0] in str(error.value)  # the key as the command line gave it
+    assert message in str(error.value.__cause__)
+
+
+def test_a_key_added_to_the_train_or_loss_group_is_refused_naming_the_group():
+    with pytest.raises(ValueError, match=r"^unknown key\(s\) \['nope'\] in config group 'loss'"):
+        train_config_of(compose_config("mapoca_pretrain", "+loss.nope=1"))
 
 
 def run(
@@ -205,6 +261,61 @@ def test_without_cuda_auto_sizes_a_run_for_the_cpu_but_what_the_command_line_set
     last = load_checkpoint(tmp_path / "a/checkpoints/last.pt")
     assert last["env_steps"] == 8 * sizes[0]
     assert last["model_config"]["embed_dim"] == sizes[1]
+
+
+@pytest.mark.slow
+@without_cuda
+def test_without_cuda_finetuning_builds_the_network_of_its_checkpoint(tmp_path):
+    # a checkpoint of another model than the CPU-sized run's model=small
+    pretrained = run(
+        "mapoca_pretrain.py",
+        "model=medium",
+        "run.total_env_steps=1",
+        "hydra.run.dir=a",
+        cwd=tmp_path,
+    )
+    assert pretrained.returncode == 0, pretrained.stderr
+    finetune = [
+        "mapoca_finetune.py",
+        "run.pretrained=a/checkpoints/last.pt",
+        "env=smoke",
+        "train.steps_per_iteration=8",
+        "run.total_env_steps=1",
+        "run.eval_every=null",
+        "logger=none",
+    ]
+    result = run(*finetune, "hydra.run.dir=b", cwd=tmp_path, config_name=None)
+    assert result.returncode == 0, result.stderr
+    assert (
+        "no CUDA device: a CPU-sized run (train.num_envs=32 run.eval_episodes=16) with the model "
+        "of run.pretrained; set run.device=cpu to keep the configured sizes"
+    ) in result.stdout
+    saved = load_checkpoint(tmp_path / "a/checkpoints/last.pt")["model_config"]
+    assert load_checkpoint(tmp_path / "b/checkpoints/last.pt")["model_config"] == saved
+    assert OmegaConf.to_container(OmegaConf.load(tmp_path / "b/config.yaml").model) == saved
+    # resuming it on the CPU takes the model of its checkpoint too
+    more = ("run.total_env_steps=512", "run.resume=b/checkpoints/last.pt", "hydra.run.dir=c")
+    resumed = run(*finetune, *more, cwd=tmp_path, config_name=None)
+    assert resumed.returncode == 0, resumed.stderr
+    assert load_checkpoint(tmp_path / "c/checkpoints/last.pt")["iteration"] == 2
+    # a model the command line sets is built as given, and refused when it differs
+    given = run(*finetune, "model=small", "hydra.run.dir=d", cwd=tmp_path, config_name=None)
+    assert given.returncode != 0
+    assert "holds a network of another shape" in given.stderr
+    # with the configured sizes (as on a GPU), the checkpoint's model replaces the configured one
+    configured = run(
+        *finetune,
+        "run.device=cpu",
+        "train=smoke",
+        "hydra.run.dir=e",
+        cwd=tmp_path,
+        config_name=None,
+    )
+    assert configured.returncode == 0, configured.stderr
+    assert "the model of run.pretrained: it differs from the configured one in embed_dim" in (
+        configured.stdout
+    )
+    assert load_checkpoint(tmp_path / "e/checkpoints/last.pt")["model_config"] == saved
 
 
 @pytest.mark.slow
@@ -357,6 +468,7 @@ def test_best_checkpoint_and_snapshots_hold_the_weights_they_name(tmp_path):
         (["run.best_window=-1"], "run.best_window"),
         (["run.snapshot_every=0"], "run.snapshot_every"),
         (["+env.grid_sise=10"], "unknown key"),
+        (["train.nope=1"], "Could not override 'train.nope'"),
         (["run.resume=missing.pt"], "no checkpoint at"),
         (["logger.kind=paper"], "logger.kind"),
     ],
@@ -391,6 +503,20 @@ def test_resume_ignores_settings_that_only_set_the_initial_weights():
         check_resumable(wider, configs, cfg)
 
 
+def test_resume_reads_a_setting_saved_under_its_earlier_name():
+    cfg = compose_config("smoke")
+    configs = {
+        "env_config": {"grid_size": 15},
+        "model_config": {"embed_dim": 32},
+        "train_config": {"clip_value_start": 0.3, "clip_value_end": 0.1},
+    }
+    saved = {"value_clip_start": 0.3, "value_clip_end": 0.1}  # before the rename
+    check_resumable({**configs, "train_config": saved}, configs, cfg)
+    wider = {**saved, "value_clip_start": 0.5}
+    with pytest.raises(ValueError, match="add loss.clip_value_start=0.5 to continue"):
+        check_resumable({**configs, "train_config": wider}, configs, cfg)
+
+
 @pytest.mark.slow
 def test_resume_names_the_settings_that_differ_from_the_checkpoints(tmp_path):
     first = run("mapoca_pretrain.py", "train.minibatches=1", "hydra.run.dir=b", cwd=tmp_path)
@@ -408,11 +534,6 @@ def test_resume_names_the_settings_that_differ_from_the_checkpoints(tmp_path):
     assert "add model.embed_dim=32 train.minibatches=1 loss.gamma=0.95 to continue" in (
         result.stderr
     )
-
-
-def compose_config(name: str, *overrides: str):
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
-        return compose(config_name=name, overrides=list(overrides))
 
 
 def test_the_smoke_config_takes_every_train_setting():
@@ -443,10 +564,9 @@ def test_the_smoke_config_takes_every_train_setting():
         ("train.max_grad_norm_start=-1", "train.max_grad_norm_start must be"),
         ("train.schedule_iterations=0", "train.schedule_iterations must be an integer >= 1"),
         ("train.lr_end_factor=-0.1", "train.lr_end_factor must be"),
-        ("train.bf16=maybe", "train.bf16 must be true or false, got 'maybe'"),
-        ("loss.entropy_coeff_start=nan", "train.entropy_coeff_start must be .*, got nan"),
-        ("loss.clip_epsilon_start=1.5", r"train.clip_epsilon_start must be .* \(0, 1\)"),
-        ("loss.value_coeff=-1", r"train.value_coeff must be a finite number in \[0, inf\)"),
+        ("loss.entropy_coeff_start=nan", "loss.entropy_coeff_start must be .*, got nan"),
+        ("loss.clip_epsilon_start=1.5", r"loss.clip_epsilon_start must be .* \(0, 1\)"),
+        ("loss.value_coeff=-1", r"loss.value_coeff must be a finite number in \[0, inf\)"),
         ("env.num_agents=0", "num_agents must be an integer >= 1"),
     ],
 )

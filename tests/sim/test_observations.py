@@ -372,7 +372,7 @@ def test_first_observation_after_reset_describes_the_new_episode(shape):
     # the agent features of a fresh episode are not the zeros of an unobserved state
     assert sim.view("agent_features").abs().sum() > 0
     # and the first step keeps them consistent
-    sim.step(torch.zeros(sim.shape))
+    sim.step(torch.zeros(sim.action_shape))
     for env in range(sim.num_envs):
         assert_observation_matches_state(sim, env)
 
@@ -382,7 +382,7 @@ def test_partial_reset_refreshes_only_the_reset_envs():
     sim.reset()
     rng = np.random.default_rng(SEED)
     for _ in range(20):
-        sim.step(torch.as_tensor(rng.uniform(-1, 1, sim.shape), dtype=torch.float32))
+        sim.step(torch.as_tensor(rng.uniform(-1, 1, sim.action_shape), dtype=torch.float32))
     names = ("heightmap", "object_features", "object_mask", "agent_features", "agent_position")
     before = {name: sim.view(name).clone() for name in names}
     mask = torch.tensor([True, False, True])

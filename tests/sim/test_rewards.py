@@ -281,7 +281,7 @@ def test_reward_is_summed_over_the_action_repeat():
     def distance_after(ticks: int) -> float:
         return (start + ticks * cfg.tick_dt * velocity - goal).norm().item()
 
-    zero = torch.zeros(sim.shape)
+    zero = torch.zeros(sim.action_shape)
     for decision in range(2):
         sim.step(zero)
         first = decision * cfg.action_repeat
@@ -301,7 +301,7 @@ def test_evaluation_terminates_once_every_sphere_is_resolved():
     cfg = sim.config
     sim.reset()
     make_inert(sim)
-    zero = torch.zeros(sim.shape)
+    zero = torch.zeros(sim.action_shape)
     active, timer = sim.view("sphere_active"), sim.view("spawn_timer")
     assert active[0].tolist() == [1, 0] and timer[0, 1] == cfg.respawn_ticks
     # sphere 0 reaches its goal at once; sphere 1 is still waiting to spawn
@@ -335,7 +335,7 @@ def test_training_never_terminates_and_truncates_at_the_step_limit():
     cfg = sim.config
     sim.reset()
     make_inert(sim)
-    zero = torch.zeros(sim.shape)
+    zero = torch.zeros(sim.action_shape)
     # every sphere resolved: in evaluation this would end the episode, in training it must not
     sim.view("sphere_position")[0, 0] = goal_xyz(cfg, *sim.view("goal_cell")[0, 0].tolist())
     for step in range(1, cfg.max_episode_steps + 1):
@@ -358,7 +358,7 @@ def test_resolved_sphere_respawns_after_the_respawn_delay(action_repeat):
     assert cfg.respawn_ticks == 6
     sim.reset()
     make_inert(sim)
-    zero = torch.zeros(sim.shape)
+    zero = torch.zeros(sim.action_shape)
     cell = sim.view("goal_cell")[0, 0].tolist()
     goal = goal_xyz(cfg, *cell)
     sim.view("sphere_position")[0, 0] = goal  # resolved on the first tick

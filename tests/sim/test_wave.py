@@ -68,7 +68,7 @@ def set_agents(sim: Simulator, position, angle, amplitude, sigma) -> None:
 def heights_after_zero_action(sim: Simulator) -> np.ndarray:
     """One decision with zero actions: with zero rates the wavelets stay where they were put."""
     before = {n: sim.view(n).clone() for n in ("agent_position", "agent_angle", "agent_sigma")}
-    sim.step(torch.zeros(sim.shape))
+    sim.step(torch.zeros(sim.action_shape))
     for name, value in before.items():
         torch.testing.assert_close(sim.view(name), value, rtol=0.0, atol=1e-6, msg=name)
     return sim.view("column_height").double().numpy()
@@ -256,7 +256,7 @@ def test_parameter_dynamics_match_reference_over_several_decisions(wrap_edges, a
     state = read_state(sim)
     for _ in range(8):
         # a third of the values lie beyond [-1, 1] and must act as +-1
-        action = rng.uniform(-1.5, 1.5, sim.shape)
+        action = rng.uniform(-1.5, 1.5, sim.action_shape)
         sim.step(torch.as_tensor(action, dtype=torch.float32))
         for _ in range(cfg.action_repeat):
             state = reference_tick(state, action.astype(np.float32).astype(np.float64), cfg)
@@ -361,7 +361,7 @@ def test_wavelet_leaving_the_grid_wraps_or_stops_at_the_edge(wrap_edges):
     start = [[[0.05, 7.0], [7.0, g - 0.05]]]
     set_agents(sim, start, [[0.0, 0.0]], [[0.0, 0.0]], [[[1.0, 1.0]] * 2])
     sim.view("agent_velocity").copy_(torch.tensor([[[-1.0, 0.0], [0.0, 1.0]]]))
-    sim.step(torch.zeros(sim.shape))
+    sim.step(torch.zeros(sim.action_shape))
     position = sim.view("agent_position")[0].tolist()
     if wrap_edges:
         assert position[0] == pytest.approx([g - 0.05, 7.0], abs=1e-5)

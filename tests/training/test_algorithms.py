@@ -171,8 +171,8 @@ def test_an_unknown_algorithm_is_refused_naming_the_setting_and_the_choices(algo
 @pytest.mark.parametrize(
     ("setting", "message"),
     [
-        ({"teacher_coeff": 1.0}, "train.teacher_coeff is 1.0 but train.algo=mappo has no teacher"),
-        ({"value_coeff": 0.0}, "train.value_coeff is 0 but train.algo=mappo"),
+        ({"teacher_coeff": 1.0}, "loss.teacher_coeff is 1.0 but train.algo=mappo has no teacher"),
+        ({"value_coeff": 0.0}, "loss.value_coeff is 0 but train.algo=mappo"),
     ],
 )
 def test_settings_only_mapoca_can_use_are_refused_with_another_algorithm(setting, message):

@@ -23,6 +23,7 @@ from terrashift_rl.training import (
     make_training_env,
 )
 from terrashift_rl.training.graphs import CudaGraphed
+from terrashift_rl.training.trainer import setting_name
 
 ENV = TerraShiftConfig(
     grid_size=8,
@@ -174,7 +175,7 @@ def test_no_teacher_by_default():
 )
 def test_bad_teacher_settings_are_refused(field, value):
     TrainConfig().validate()
-    with pytest.raises(ValueError, match=f"train.{field}"):
+    with pytest.raises(ValueError, match=f"loss.{field}"):
         TrainConfig(**{field: value}).validate()
 
 
@@ -375,7 +376,7 @@ def test_bad_learning_rate_settings_are_refused(field, value):
 
 @pytest.mark.parametrize("field", [field.name for field in dataclasses.fields(TrainConfig)])
 def test_every_setting_of_the_wrong_type_is_refused_by_name(field):
-    with pytest.raises(ValueError, match=rf"^train\.{field} .*got 'junk'"):
+    with pytest.raises(ValueError, match=rf"^{setting_name(field)} .*got 'junk'"):
         TrainConfig(**{field: "junk"}).validate()
 
 
@@ -393,13 +394,13 @@ def test_every_setting_of_the_wrong_type_is_refused_by_name(field):
         # zero
         ("schedule_iterations", 0, "an integer >= 1"),
         ("max_grad_norm_end", 0.0, r"in \(0, inf\)"),
-        ("value_clip_start", 0.0, r"in \(0, inf\)"),
+        ("clip_value_start", 0.0, r"in \(0, inf\)"),
         ("clip_epsilon_end", 0.0, r"in \(0, 1\)"),
         ("gamma", 0.0, r"in \(0, 1\]"),
         # NaN and infinity
         ("entropy_coeff_start", float("nan"), r"in \[0, inf\)"),
         ("lr_trunk_policy", float("nan"), r"in \(0, inf\)"),
-        ("value_clip_end", float("inf"), r"in \(0, inf\)"),
+        ("clip_value_end", float("inf"), r"in \(0, inf\)"),
         ("teacher_coeff", float("inf"), r"in \[0, inf\)"),
         ("lmbda", float("nan"), r"in \[0, 1\]"),
         # above a range
@@ -413,7 +414,8 @@ def test_every_setting_of_the_wrong_type_is_refused_by_name(field):
     ],
 )
 def test_a_setting_outside_its_range_is_refused_with_the_range(field, value, allowed):
-    with pytest.raises(ValueError, match=rf"^train\.{field} must be .*{allowed}, got {value!r}"):
+    message = rf"^{setting_name(field)} must be .*{allowed}, got {value!r}"
+    with pytest.raises(ValueError, match=message):
         TrainConfig(**{field: value}).validate()
 
 
