@@ -30,7 +30,8 @@ def free_port() -> int:
 
 def train_resume_and_record(rank: int, port: int, folder: Path) -> None:
     """One rank, as torchrun would start it: a straight run of 3 iterations (a), a run of 1
-    (b) and b resumed to 3 (c); after every update, this rank's parameters go to a file."""
+    (b) and b resumed to 3 (c), with the adaptive learning rate; after every update, this
+    rank's parameters, return statistics and learning rates go to a file."""
     os.environ.update(
         MASTER_ADDR="127.0.0.1",
         MASTER_PORT=str(port),
@@ -42,13 +43,17 @@ def train_resume_and_record(rank: int, port: int, folder: Path) -> None:
     torch.set_num_threads(1)
     # joined once: run_training stays in a group it finds and leaves one it joined
     distributed.init_process_group("cpu", key="run.device")
-    updates = []
+    updates, trainers = [], []
     train_iteration = OnPolicyTrainer.train_iteration
 
     def recorded(trainer: OnPolicyTrainer) -> dict[str, float]:
+        trainers.append(trainer)
         metrics = train_iteration(trainer)
-        flat = torch.cat([p.detach().reshape(-1) for _, p in trainer._named_parameters()])
-        updates.append(flat.clone())
+        parameters = [p.detach().reshape(-1) for _, p in trainer._named_parameters()]
+        statistics = trainer.algorithm.value_normalizer.state_dict().values()
+        rates = [float(group["lr"]) for group in trainer.optimizer.param_groups]
+        updates.append(torch.cat([*parameters, *(s.reshape(1) for s in statistics)]).clone())
+        updates.append(torch.tensor(rates))
         return metrics
 
     OnPolicyTrainer.train_iteration = recorded
@@ -63,21 +68,48 @@ def train_resume_and_record(rank: int, port: int, folder: Path) -> None:
     }
     with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
         for name, overrides in runs.items():
-            cfg = compose(config_name="smoke", overrides=[*overrides, "run.eval_every=2"])
+            overrides = [*overrides, "run.eval_every=2", "train.lr_schedule=adaptive"]
+            cfg = compose(config_name="smoke", overrides=overrides)
             (folder / name).mkdir(exist_ok=True)  # as Hydra makes it
             run_training(cfg, run_dir=folder / name)
+    # each exchange on values that differ between the ranks: rank r has r
+    trainers[-1]._adapt_learning_rate(torch.tensor(float(rank)))  # a KL of 0.5: down by 1.5
+    weight = torch.nn.Parameter(torch.zeros(2))
+    weight.grad = torch.full((2,), float(rank))
+    distributed.average_gradients([weight])
+    exchanged = {
+        "learning_rates": [float(group["lr"]) for group in trainers[-1].optimizer.param_groups],
+        "gradient": weight.grad.tolist(),
+        "average": distributed.average(torch.tensor(float(rank))).item(),
+        "any": distributed.any_process(rank == 1),
+        "metrics": distributed.combine_metrics(
+            {"episodes": 1.0 + rank, "reward": float(rank), "loss": 2.0}, summed=["episodes"]
+        ),
+        "gathered": distributed.gather_to_main(rank),
+    }
     distributed.destroy_process_group()
-    torch.save(updates, folder / f"updates_rank{rank}.pt")
+    torch.save({"updates": updates, "exchanged": exchanged}, folder / f"rank{rank}.pt")
 
 
 @pytest.mark.slow
 def test_two_gloo_processes_train_alike_checkpoint_and_resume_exactly(tmp_path):
     mp.spawn(train_resume_and_record, args=(free_port(), tmp_path), nprocs=WORLD_SIZE, join=True)
-    ranks = [torch.load(tmp_path / f"updates_rank{rank}.pt") for rank in range(WORLD_SIZE)]
-    assert len(ranks[0]) == len(ranks[1]) == 3 + 1 + 2
-    for update, (first, second) in enumerate(zip(*ranks, strict=True)):
-        assert torch.equal(first, second), f"the ranks' parameters differ after update {update}"
-    assert not torch.equal(ranks[0][0], ranks[0][1])  # they do learn
+    saved = [torch.load(tmp_path / f"rank{rank}.pt") for rank in range(WORLD_SIZE)]
+    ranks = [rank["updates"] for rank in saved]
+    assert len(ranks[0]) == len(ranks[1]) == 2 * (3 + 1 + 2)
+    for index, (first, second) in enumerate(zip(*ranks, strict=True)):
+        what = "learning rates" if index % 2 else "parameters and return statistics"
+        assert torch.equal(first, second), f"the ranks' {what} differ after update {index // 2}"
+    assert not torch.equal(ranks[0][0], ranks[0][2])  # they do learn
+    assert not torch.equal(ranks[0][1], ranks[0][3])  # the adaptive rate moves
+    first, second = (rank["exchanged"] for rank in saved)
+    assert first["learning_rates"] == second["learning_rates"]
+    assert first["learning_rates"][0] == pytest.approx(float(ranks[0][-1][0]) / 1.5)
+    assert first["gradient"] == second["gradient"] == [0.5, 0.5]
+    assert first["average"] == second["average"] == 0.5
+    assert first["any"] and second["any"]
+    assert first["metrics"] == second["metrics"] == {"episodes": 3.0, "reward": 0.5, "loss": 2.0}
+    assert first["gathered"] == [0, 1] and second["gathered"] is None
 
     a, c = (load_checkpoint(tmp_path / name / "checkpoints/last.pt") for name in ("a", "c"))
     assert a["env_steps"] == c["env_steps"] == 3 * WORLD_SIZE * FRAMES
