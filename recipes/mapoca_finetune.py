@@ -2,6 +2,7 @@
 
     python recipes/mapoca_finetune.py run.pretrained=<pretrain run>/checkpoints/last.pt
     python recipes/mapoca_finetune.py run.pretrained=last.pt run.minutes=5 train.num_envs=1024
+    torchrun --standalone --nproc_per_node=4 recipes/mapoca_finetune.py run.pretrained=last.pt
 
 The networks are size-agnostic: the same weights run 15x15 with 8 agents and 30x30 with 16. The
 model settings are the checkpoint's (unless the command line sets them), also on a CPU, where
@@ -13,13 +14,19 @@ started from the pretrained weights with a fresh optimiser and fresh schedules.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from terrashift_rl.training.run import register_config_schemas, run_training, size_for_the_machine
+from terrashift_rl.training.run import (
+    hydra_overrides_of_other_ranks,
+    register_config_schemas,
+    run_training,
+    size_for_the_machine,
+)
 
 register_config_schemas()
 
@@ -41,4 +48,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    sys.argv.extend(hydra_overrides_of_other_ranks())  # under torchrun, rank 0 alone writes
     main()

@@ -4,6 +4,7 @@ variance."""
 from __future__ import annotations
 
 import torch
+import torch.distributed as dist
 from torch import Tensor, nn
 
 
@@ -25,6 +26,12 @@ class ValueNormalizer(nn.Module):
         decay: weight of the old statistics at each update, in [0, 1).
         epsilon: floor of the variance.
 
+    Keyword Args:
+        synchronize: average each update's moments over the processes of torch.distributed's
+            default group (data-parallel training, where every process updates at once with a
+            batch of the same size), so that every process keeps the same statistics, those of
+            all the processes' targets together.
+
     Examples:
         >>> normalizer = ValueNormalizer(decay=0.0)
         >>> normalizer.update(torch.tensor([1.0, 3.0]))
@@ -34,7 +41,7 @@ class ValueNormalizer(nn.Module):
         tensor([2.])
     """
 
-    def __init__(self, decay: float = 0.99, epsilon: float = 1e-4) -> None:
+    def __init__(self, decay: float = 0.99, epsilon: float = 1e-4, *, synchronize: bool = False):
         super().__init__()
         if not 0.0 <= decay < 1.0:
             raise ValueError(f"decay must be in [0, 1), got {decay}")
@@ -42,6 +49,7 @@ class ValueNormalizer(nn.Module):
             raise ValueError(f"epsilon must be positive, got {epsilon}")
         self.decay = decay
         self.epsilon = epsilon
+        self.synchronize = synchronize
         self.register_buffer("mean_estimate", torch.zeros(()))
         self.register_buffer("square_estimate", torch.zeros(()))
         self.register_buffer("weight", torch.zeros(()))
@@ -53,11 +61,16 @@ class ValueNormalizer(nn.Module):
     def update(self, targets: Tensor) -> None:
         """Moves the statistics towards the mean and mean square of ``targets`` (any shape)."""
         targets = targets.detach().float()
-        if not torch.isfinite(targets).all():
+        moments = torch.stack([targets.mean(), targets.square().mean()])
+        if self.synchronize:
+            dist.all_reduce(moments)
+            moments /= dist.get_world_size()
+        # non-finite targets make a moment non-finite: with synchronize, on every process alike
+        if not torch.isfinite(moments).all():
             raise ValueError("ValueNormalizer.update got non-finite value targets")
         keep = self.decay
-        self.mean_estimate.mul_(keep).add_((1.0 - keep) * targets.mean())
-        self.square_estimate.mul_(keep).add_((1.0 - keep) * targets.square().mean())
+        self.mean_estimate.mul_(keep).add_((1.0 - keep) * moments[0])
+        self.square_estimate.mul_(keep).add_((1.0 - keep) * moments[1])
         self.weight.mul_(keep).add_(1.0 - keep)
 
     def statistics(self) -> tuple[Tensor, Tensor]:

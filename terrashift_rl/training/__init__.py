@@ -1,5 +1,5 @@
 """Training utilities the recipes compose: the on-policy trainer and its algorithms (MA-POCA,
-MAPPO, IPPO), schedules, checkpoints."""
+MAPPO, IPPO), schedules, checkpoints, data parallelism over torchrun's processes."""
 
 from terrashift_rl.training.algorithms import ALGORITHMS, Algorithm
 from terrashift_rl.training.checkpoint import load_checkpoint, save_checkpoint

@@ -53,6 +53,7 @@ from torchrl.objectives.value import MultiAgentGAE
 from terrashift_rl.modules import TerraShiftNetworks, keys, make_agent_value_head
 from terrashift_rl.modules.independent import AGENT_VALUE
 from terrashift_rl.objectives import MAPOCALoss, ValueNormalizer
+from terrashift_rl.training import distributed
 
 if TYPE_CHECKING:
     from terrashift_rl.training.trainer import TrainConfig
@@ -189,7 +190,8 @@ def _team_value_per_agent() -> TensorDictModule:
 def _value_normalizer(config: TrainConfig, device: torch.device) -> ValueNormalizer | None:
     if not config.normalize_value:
         return None
-    return ValueNormalizer(config.value_norm_decay).to(device)
+    synchronize = distributed.world_size() > 1  # one set of return statistics for every rank
+    return ValueNormalizer(config.value_norm_decay, synchronize=synchronize).to(device)
 
 
 def _max_batch(config: TrainConfig) -> int:

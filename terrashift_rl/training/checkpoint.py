@@ -3,8 +3,9 @@
 A run killed mid-write keeps the previous checkpoint. Loading uses ``torch.load`` with
 ``weights_only=True``: a checkpoint may hold tensors, numbers, strings, lists and dicts, nothing
 that unpickling would have to construct by calling Python code, so a shared file cannot run
-anything. Tensordicts (the trainer's carried state) are stored as nested dicts of tensors with
-their batch sizes and rebuilt on loading.
+anything. Tensordicts (the trainer's carried state, also inside the lists and dicts of a
+data-parallel run's per-rank states) are stored as nested dicts of tensors with their batch sizes
+and rebuilt on loading.
 """
 
 from __future__ import annotations
@@ -131,6 +132,10 @@ def _why_unreadable(path: Path, error: Exception) -> str:
 
 
 def _plain(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {key: _plain(entry) for key, entry in value.items()}
+    if isinstance(value, list):
+        return [_plain(entry) for entry in value]
     if not isinstance(value, TensorDictBase):
         return value
     return {
@@ -142,8 +147,12 @@ def _plain(value: Any) -> Any:
 
 
 def _rebuilt(value: Any) -> Any:
-    if not (isinstance(value, dict) and _TENSORDICT in value):
+    if isinstance(value, list):
+        return [_rebuilt(entry) for entry in value]
+    if not isinstance(value, dict):
         return value
+    if _TENSORDICT not in value:
+        return {key: _rebuilt(entry) for key, entry in value.items()}
     stored = value[_TENSORDICT]
     return TensorDict(
         {key: _rebuilt(entry) for key, entry in stored["entries"].items()},

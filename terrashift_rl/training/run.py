@@ -34,6 +34,7 @@ from tqdm import tqdm
 
 from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.training import distributed
 from terrashift_rl.training.checkpoint import (
     load_checkpoint,
     remove_stale_temporaries,
@@ -65,6 +66,7 @@ __all__ = [
     "check_settings",
     "cpu_overrides",
     "fields_of",
+    "hydra_overrides_of_other_ranks",
     "integer",
     "one_of",
     "or_null",
@@ -338,18 +340,33 @@ def size_for_the_machine(
                 f"{defaults_key}={defaults} holds an override Hydra cannot read: {error}"
             ) from None
         note = f" with the model of {source}" if pinned else ""
-        if sized:
+        if distributed.is_main_process():
             print(
                 f"no CUDA device: a CPU-sized run ({' '.join(sized)}){note}; set {device_key}=cpu "
                 "to keep the configured sizes"
+                if sized
+                else f"no CUDA device: running on the CPU with the configured sizes{note}"
             )
-        else:
-            print(f"no CUDA device: running on the CPU with the configured sizes{note}")
-    elif changed:
+    elif changed and distributed.is_main_process():
         print(f"the model of {source}: it differs from the configured one in {', '.join(changed)}")
     if not sized and not changed:
         return cfg
     return compose(config_name=hydra_config.job.config_name, overrides=[*sized, *pinned, *given])
+
+
+def hydra_overrides_of_other_ranks() -> list[str]:
+    """Hydra overrides for the command line of a torchrun rank other than 0: no output folder,
+    ``.hydra`` files or log of its own (rank 0's folder is the run's, and only rank 0 writes);
+    none for rank 0 or a single process. The recipes add them before Hydra reads the command
+    line."""
+    if distributed.is_main_process():
+        return []
+    return [
+        "hydra.run.dir=.",
+        "hydra.output_subdir=null",
+        "hydra/job_logging=disabled",
+        "hydra/hydra_logging=disabled",
+    ]
 
 
 # --- resuming ------------------------------------------------------------------------------------
@@ -447,6 +464,8 @@ class StopRequest:
         if self.requested:
             raise KeyboardInterrupt
         self.requested = True
+        if self.progress.disable:  # a data-parallel run's other ranks are silent
+            return
         self.progress.write(
             f"{signal.Signals(signum).name}: stopping after this iteration, then saving a "
             "checkpoint to resume from (signal again to quit at once, without one)"
@@ -524,6 +543,31 @@ def update_best(
         save_checkpoint(weights_state(trainer, configs, mean_reward_per_decision=mean), path)
 
 
+def _world_size_change(saved: int, now: int) -> str:
+    """What resuming a checkpoint of ``saved`` processes with ``now`` processes does.
+
+    Example:
+        >>> _world_size_change(4, 2).split("over, ")[1]
+        'the environments of ranks 0-1 continue, those of ranks 2-3 are left behind'
+        >>> _world_size_change(1, 2).split("over, ")[1]
+        'the environments of rank 0 continue, and new ones from run.seed + rank for rank 1'
+    """
+
+    def ranks(first: int, last: int) -> str:
+        return f"rank {first}" if first == last else f"ranks {first}-{last}"
+
+    change = (
+        f"and new ones from run.seed + rank for {ranks(saved, now - 1)}"
+        if now > saved
+        else f"those of {ranks(now, saved - 1)} are left behind"
+    )
+    return (
+        f"the checkpoint was trained by {saved} process(es) and continues with {now}: the "
+        "weights, optimiser, return statistics and counters carry over, the environments of "
+        f"{ranks(0, min(saved, now) - 1)} continue, {change}"
+    )
+
+
 def log_scalars(logger: Logger | None, metrics: dict[str, float], step: int) -> None:
     """Logs every metric at ``step`` (env-steps), unless there is no logger."""
     if logger is not None:
@@ -539,6 +583,11 @@ def run_training(cfg: DictConfig, *, run_dir: Path) -> Path:
     Every setting is checked before anything is built; ``run.resume`` continues a run exactly,
     ``run.pretrained`` starts from a checkpoint's weights. SIGINT or SIGTERM stops after the
     running iteration with a checkpoint (:class:`StopRequest`).
+
+    Started by ``torchrun``, each process joins the process group (unless it is in it already;
+    then it stays), trains data-parallel on its own device with seed ``run.seed + rank``
+    (:mod:`~terrashift_rl.training.distributed`) and leaves the group at the end; rank 0 alone
+    logs, shows progress and writes files.
     """
     # --- config ------------------------------------------------------------------------------
     check_settings(cfg, RUN_SETTINGS)
@@ -561,12 +610,18 @@ def run_training(cfg: DictConfig, *, run_dir: Path) -> Path:
         check_resumable(resume, {**configs, "train_config": dataclasses.asdict(train_config)}, cfg)
     # a run killed while writing a checkpoint leaves its temporary file beside it
     folders = [checkpoints] if resume is None else [checkpoints, Path(cfg.run.resume).parent]
-    for folder in folders:
+    for folder in folders if distributed.is_main_process() else []:
         for path in remove_stale_temporaries(folder):
             print(f"removed {path}, left by a checkpoint write that never finished")
 
     # --- setup -------------------------------------------------------------------------------
-    torch.manual_seed(cfg.run.seed)
+    joins = distributed.launched() and not distributed.is_distributed()
+    if distributed.launched():  # one rank of torchrun's: its own device, seed and environments
+        device = distributed.init_process_group(cfg.run.device, key="run.device")
+    main, seed = distributed.is_main_process(), cfg.run.seed + distributed.rank()
+    if not main:  # rank 0 alone evaluates and writes best.pt and snapshots
+        window, snapshot_every, eval_every = 0, None, None
+    torch.manual_seed(seed)
     networks = make_terrashift_networks(model_config).to(device)
     if cfg.run.pretrained:
         pretrained = load_checkpoint(cfg.run.pretrained, required=WEIGHTS_KEYS)
@@ -579,7 +634,7 @@ def run_training(cfg: DictConfig, *, run_dir: Path) -> Path:
                 "none)"
             )
     env = make_training_env(
-        env_config, networks, num_envs=train_config.num_envs, device=device, seed=cfg.run.seed
+        env_config, networks, num_envs=train_config.num_envs, device=device, seed=seed
     )
     trainer = MAPOCATrainer(env, networks, train_config)
     if cfg.run.pretrained:
@@ -598,10 +653,13 @@ def run_training(cfg: DictConfig, *, run_dir: Path) -> Path:
         trainer.load_state_dict(resume)
         run_id = resume["logger_run_id"]
         best = resume.get("best", best)
-    logger = make_logger(cfg, run_dir, run_id)
+        if main and resume.get("world_size", 1) != distributed.world_size():
+            print(_world_size_change(resume.get("world_size", 1), distributed.world_size()))
+    logger = make_logger(cfg, run_dir, run_id) if main else None
     if logger is not None and hasattr(logger, "experiment") and run_id is None:
         run_id = getattr(logger.experiment, "id", None)
-    OmegaConf.save(cfg, run_dir / "config.yaml")
+    if main:
+        OmegaConf.save(cfg, run_dir / "config.yaml")
 
     # --- train -------------------------------------------------------------------------------
     deadline = None if cfg.run.minutes is None else time.monotonic() + 60.0 * cfg.run.minutes
@@ -613,10 +671,16 @@ def run_training(cfg: DictConfig, *, run_dir: Path) -> Path:
         unit_scale=True,
         desc=cfg.run.name,
         dynamic_ncols=True,
+        disable=not main,
     )
 
     def evaluate_now() -> dict[str, float]:
         return evaluate_periodically(eval_env, networks.actor, seed=cfg.run.eval_seed)
+
+    def save_last() -> None:
+        state = checkpoint_state(trainer, configs, run_id, best)  # on every rank: a collective
+        if main:
+            save_checkpoint(state, last)
 
     goal_fraction = "-"  # the latest evaluation's goal fraction, for the progress bar
     try:
@@ -638,22 +702,25 @@ def run_training(cfg: DictConfig, *, run_dir: Path) -> Path:
                     reward = metrics["reward_per_decision"]
                     update_best(best, reward, window, trainer, configs, checkpoints / "best.pt")
                 if trainer.iteration % cfg.run.checkpoint_every == 0:
-                    save_checkpoint(checkpoint_state(trainer, configs, run_id, best), last)
+                    save_last()
                 if snapshot_every and trainer.iteration % snapshot_every == 0:
                     snapshot = checkpoints / f"iteration_{trainer.iteration:06d}.pt"
                     save_checkpoint(weights_state(trainer, configs), snapshot)
-                if stop.requested:
+                if distributed.any_process(stop.requested):  # every rank stops alike
                     break
             # between iterations: the state is consistent, the checkpoint resumes exactly
-            save_checkpoint(checkpoint_state(trainer, configs, run_id, best), last)
+            save_last()
             if eval_env and trainer.iteration % eval_every:  # the final policy's score too
                 final = evaluate_now()
                 progress.write(f"evaluation at {trainer.env_steps:,} env-steps: {final}")
                 log_scalars(logger, final, trainer.env_steps)
     except KeyboardInterrupt:
-        progress.write(f"interrupted mid-iteration; {last} is the last checkpoint written")
+        if main:
+            progress.write(f"interrupted mid-iteration; {last} is the last checkpoint written")
         raise SystemExit(130) from None
     except FloatingPointError as error:
+        if not main:  # every rank stops at the same iteration; rank 0 says why
+            raise SystemExit(1) from None
         written = f"{last} is the last checkpoint written" if last.exists() else "no checkpoint"
         raise SystemExit(f"{error}\nstopped without saving that iteration; {written}") from None
     finally:  # cleanup
@@ -664,5 +731,10 @@ def run_training(cfg: DictConfig, *, run_dir: Path) -> Path:
             and hasattr(logger.experiment, "finish")
         ):
             logger.experiment.finish()
-    print(f"{trainer.env_steps:,} env-steps in {trainer.iteration} iterations; checkpoint {last}")
+        if joins:  # leaves the process group as it found it
+            distributed.destroy_process_group()
+    if main:
+        print(
+            f"{trainer.env_steps:,} env-steps in {trainer.iteration} iterations; checkpoint {last}"
+        )
     return last

@@ -14,6 +14,10 @@ update only where the algorithm's loss runs without host synchronisation (MA-POC
 The collection loop is written out (``env.step_and_maybe_reset``) rather than delegated to a
 collector, because a checkpoint has to hold the tensordict carried between iterations and the
 simulator state: a resumed run then continues exactly where the killed one stopped.
+
+Built in each process of a torch.distributed group (``torchrun``), the trainers train
+data-parallel (:mod:`terrashift_rl.training.distributed`): each collects from its own
+environments, and all take the same steps on gradients averaged over the processes.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ from terrashift_rl.envs.baselines import ScriptedHeuristicPolicy
 from terrashift_rl.modules import TerraShiftNetworks, keys
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.sim.types import ACTION_NAMES
+from terrashift_rl.training import distributed
 from terrashift_rl.training.algorithms import ALGORITHMS
 from terrashift_rl.training.graphs import CudaGraphed
 from terrashift_rl.training.schedules import LinearSchedule
@@ -50,6 +55,10 @@ LR_SCHEDULES = ("linear", "adaptive")
 """Values of :attr:`TrainConfig.lr_schedule`."""
 _KL_STEP = 1.5
 """Factor by which the adaptive schedule moves the learning rates after a mini-batch."""
+_RANK_KEYS = ("torch_rng", "cuda_rng", "simulator", "carry")
+"""What each process of a data-parallel run holds of its own in a checkpoint."""
+_SUMMED_METRICS = ("episodes", "env_steps_per_s", "collection_steps_per_s")
+"""Metrics of a data-parallel iteration that add up over the processes (the others average)."""
 
 
 @dataclass
@@ -350,6 +359,7 @@ class OnPolicyTrainer:
         self.device = env.device
         self.algorithm = ALGORITHMS[config.algo](networks, config)
         self.loss = self.algorithm.loss
+        distributed.broadcast_from_main([networks, self.algorithm.networks])
         if config.compile:
             networks.compile_networks()
             for head in self.algorithm.networks.values():
@@ -416,13 +426,13 @@ class OnPolicyTrainer:
         finished = time.perf_counter()
         frames = data.numel()
         self.iteration += 1
-        self.env_steps += frames
+        self.env_steps += frames * distributed.world_size()
         metrics.update(episode_metrics(data))
         metrics.update(concentration_metrics(data))
         metrics["env_steps_per_s"] = frames / (finished - start)
         metrics["collection_steps_per_s"] = frames / (collected - start)
         metrics["update_seconds"] = finished - collected
-        return metrics
+        return distributed.combine_metrics(metrics, summed=_SUMMED_METRICS)
 
     @torch.no_grad()
     def collect(self) -> TensorDictBase:
@@ -478,7 +488,9 @@ class OnPolicyTrainer:
                     # per-element diagnostics (torchrl's explained variance, ESS) are averaged
                     sums[key] = sums.get(key, 0.0) + value.float().mean()
                 count += 1
-        metrics = {key: (value / count).item() for key, value in sums.items()}
+        # over every process, so that each reaches the same verdict in _check_finite
+        means = distributed.average(torch.stack(list(sums.values())) / count)
+        metrics = dict(zip(sums, means.tolist(), strict=True))
         metrics["lr_trunk_policy"] = float(self.optimizer.param_groups[0]["lr"])
         metrics["critic_warmup"] = float(warmup)
         metrics["clip_epsilon"] = float(self.loss.clip_epsilon)
@@ -513,7 +525,9 @@ class OnPolicyTrainer:
         for parameter in frozen:
             parameter.grad = None
         # clip_grad_norm_ reads max_norm on the host; this keeps it a tensor
-        grads = [p.grad for p in self._parameters if p.grad is not None]
+        stepped = [p for p in self._parameters if p.grad is not None]
+        distributed.average_gradients(stepped)
+        grads = [p.grad for p in stepped]
         grad_norm = torch.nn.utils.get_total_norm(grads)
         torch._foreach_mul_(grads, (self._max_grad_norm / (grad_norm + 1e-6)).clamp(max=1.0))
         self.optimizer.step()
@@ -544,9 +558,13 @@ class OnPolicyTrainer:
     def state_dict(self) -> dict[str, Any]:
         """Everything a resumed run needs to continue exactly: weights (:meth:`weights_state_dict`),
         optimiser, return statistics, counters, random states, the simulator state and the
-        tensordict carried between iterations."""
+        tensordict carried between iterations.
+
+        In a data-parallel run every process must call it together: rank 0's state then also
+        holds ``world_size`` and, in ``rank_states``, the random states, simulator state and
+        carried tensordict of ranks 1, 2, ... (the rest all ranks share)."""
         normalizer = self.algorithm.value_normalizer
-        return {
+        state = {
             **self.weights_state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "iteration": self.iteration,
@@ -558,9 +576,20 @@ class OnPolicyTrainer:
             "simulator": self.env.base_env.sim.state_dict(),
             "carry": None if self._carry is None else self._carry.to("cpu"),
         }
+        if distributed.is_distributed():
+            own = {key: state[key] for key in _RANK_KEYS}
+            own["simulator"] = {name: value.cpu() for name, value in own["simulator"].items()}
+            gathered = distributed.gather_to_main(own)
+            state["world_size"] = distributed.world_size()
+            if gathered is not None:
+                state["rank_states"] = gathered[1:]
+        return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restores a :meth:`state_dict` taken from a run with the same settings."""
+        """Restores a :meth:`state_dict` taken from a run with the same settings. In a
+        data-parallel run each rank takes its own environments and random states from it; a rank
+        the checkpoint's run did not have (it had fewer processes) keeps its freshly seeded ones
+        and starts new episodes."""
         algo = _algo_of(state)
         if algo != self.config.algo:
             raise ValueError(
@@ -579,14 +608,16 @@ class OnPolicyTrainer:
             normalizer.load_state_dict(state["value_normalizer"])
         self.iteration = state["iteration"]
         self.env_steps = state["env_steps"]
-        torch.set_rng_state(state["torch_rng"])
-        if state["cuda_rng"] is not None and torch.cuda.is_available():
-            torch.cuda.set_rng_state_all(state["cuda_rng"])
-        self.env.base_env.sim.load_state_dict(
-            {name: value.to(self.device) for name, value in state["simulator"].items()}
-        )
-        carry = state["carry"]
-        self._carry = None if carry is None else carry.to(self.device)
+        own = distributed.rank_entries(state, _RANK_KEYS)
+        if own is not None:
+            torch.set_rng_state(own["torch_rng"])
+            if own["cuda_rng"] is not None and torch.cuda.is_available():
+                torch.cuda.set_rng_state_all(own["cuda_rng"])
+            self.env.base_env.sim.load_state_dict(
+                {name: value.to(self.device) for name, value in own["simulator"].items()}
+            )
+            carry = own["carry"]
+            self._carry = None if carry is None else carry.to(self.device)
         self._prepare_optimizer()
         # an adaptive rate continues from where the checkpoint's put it
         self._lr_scales[0].fill_(float(self.optimizer.param_groups[0]["lr"]) / self._base_lrs[0])
@@ -620,7 +651,7 @@ class OnPolicyTrainer:
         graphs the rates are tensors and this runs inside the captured update, without a host
         synchronisation."""
         target = self.config.desired_kl
-        kl = kl.detach().float()
+        kl = distributed.average(kl.detach().float())
         step = torch.where(
             kl > 2.0 * target,
             1.0 / _KL_STEP,
@@ -742,6 +773,6 @@ def iterate_until(
     """Runs iterations until ``total_env_steps`` or the wall-clock ``deadline``
     (``time.monotonic()`` value) is reached, yielding each iteration's metrics."""
     while trainer.env_steps < total_env_steps:
-        if deadline is not None and time.monotonic() >= deadline:
+        if deadline is not None and distributed.any_process(time.monotonic() >= deadline):
             return
         yield trainer.train_iteration()

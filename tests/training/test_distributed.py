@@ -1,0 +1,203 @@
+"""Data-parallel training on the CPU: two gloo processes train the smoke config, checkpoint and
+resume, with identical parameters after every update; the recipes under torchrun; the
+process-group helpers in a single process."""
+
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+import torch.multiprocessing as mp
+from hydra import compose, initialize_config_dir
+
+from terrashift_rl.training import OnPolicyTrainer, distributed, load_checkpoint
+from terrashift_rl.training.run import register_config_schemas, run_training
+
+ROOT = Path(__file__).resolve().parents[2]
+CONFIGS = ROOT / "recipes" / "configs"
+WORLD_SIZE = 2
+FRAMES = 4 * 8  # the smoke config's environments x steps per iteration, per process
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def train_resume_and_record(rank: int, port: int, folder: Path) -> None:
+    """One rank, as torchrun would start it: a straight run of 3 iterations (a), a run of 1
+    (b) and b resumed to 3 (c), with the adaptive learning rate; after every update, this
+    rank's parameters, return statistics and learning rates go to a file."""
+    os.environ.update(
+        MASTER_ADDR="127.0.0.1",
+        MASTER_PORT=str(port),
+        RANK=str(rank),
+        LOCAL_RANK=str(rank),
+        WORLD_SIZE=str(WORLD_SIZE),
+        LOCAL_WORLD_SIZE=str(WORLD_SIZE),
+    )
+    torch.set_num_threads(1)
+    # joined once: run_training stays in a group it finds and leaves one it joined
+    distributed.init_process_group("cpu", key="run.device")
+    updates, trainers = [], []
+    train_iteration = OnPolicyTrainer.train_iteration
+
+    def recorded(trainer: OnPolicyTrainer) -> dict[str, float]:
+        trainers.append(trainer)
+        metrics = train_iteration(trainer)
+        parameters = [p.detach().reshape(-1) for _, p in trainer._named_parameters()]
+        statistics = trainer.algorithm.value_normalizer.state_dict().values()
+        rates = [float(group["lr"]) for group in trainer.optimizer.param_groups]
+        updates.append(torch.cat([*parameters, *(s.reshape(1) for s in statistics)]).clone())
+        updates.append(torch.tensor(rates))
+        return metrics
+
+    OnPolicyTrainer.train_iteration = recorded
+    register_config_schemas()
+    runs = {
+        "a": [f"run.total_env_steps={3 * WORLD_SIZE * FRAMES}"],
+        "b": [f"run.total_env_steps={WORLD_SIZE * FRAMES}"],
+        "c": [
+            f"run.total_env_steps={3 * WORLD_SIZE * FRAMES}",
+            f"run.resume={folder}/b/checkpoints/last.pt",
+        ],
+    }
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
+        for name, overrides in runs.items():
+            overrides = [*overrides, "run.eval_every=2", "train.lr_schedule=adaptive"]
+            cfg = compose(config_name="smoke", overrides=overrides)
+            (folder / name).mkdir(exist_ok=True)  # as Hydra makes it
+            run_training(cfg, run_dir=folder / name)
+    # each exchange on values that differ between the ranks: rank r has r
+    trainers[-1]._adapt_learning_rate(torch.tensor(float(rank)))  # a KL of 0.5: down by 1.5
+    weight = torch.nn.Parameter(torch.zeros(2))
+    weight.grad = torch.full((2,), float(rank))
+    distributed.average_gradients([weight])
+    exchanged = {
+        "learning_rates": [float(group["lr"]) for group in trainers[-1].optimizer.param_groups],
+        "gradient": weight.grad.tolist(),
+        "average": distributed.average(torch.tensor(float(rank))).item(),
+        "any": distributed.any_process(rank == 1),
+        "metrics": distributed.combine_metrics(
+            {"episodes": 1.0 + rank, "reward": float(rank), "loss": 2.0}, summed=["episodes"]
+        ),
+        "gathered": distributed.gather_to_main(rank),
+    }
+    distributed.destroy_process_group()
+    torch.save({"updates": updates, "exchanged": exchanged}, folder / f"rank{rank}.pt")
+
+
+@pytest.mark.slow
+def test_two_gloo_processes_train_alike_checkpoint_and_resume_exactly(tmp_path):
+    mp.spawn(train_resume_and_record, args=(free_port(), tmp_path), nprocs=WORLD_SIZE, join=True)
+    saved = [torch.load(tmp_path / f"rank{rank}.pt") for rank in range(WORLD_SIZE)]
+    ranks = [rank["updates"] for rank in saved]
+    assert len(ranks[0]) == len(ranks[1]) == 2 * (3 + 1 + 2)
+    for index, (first, second) in enumerate(zip(*ranks, strict=True)):
+        what = "learning rates" if index % 2 else "parameters and return statistics"
+        assert torch.equal(first, second), f"the ranks' {what} differ after update {index // 2}"
+    assert not torch.equal(ranks[0][0], ranks[0][2])  # they do learn
+    assert not torch.equal(ranks[0][1], ranks[0][3])  # the adaptive rate moves
+    first, second = (rank["exchanged"] for rank in saved)
+    assert first["learning_rates"] == second["learning_rates"]
+    assert first["learning_rates"][0] == pytest.approx(float(ranks[0][-1][0]) / 1.5)
+    assert first["gradient"] == second["gradient"] == [0.5, 0.5]
+    assert first["average"] == second["average"] == 0.5
+    assert first["any"] and second["any"]
+    assert first["metrics"] == second["metrics"] == {"episodes": 3.0, "reward": 0.5, "loss": 2.0}
+    assert first["gathered"] == [0, 1] and second["gathered"] is None
+
+    a, c = (load_checkpoint(tmp_path / name / "checkpoints/last.pt") for name in ("a", "c"))
+    assert a["env_steps"] == c["env_steps"] == 3 * WORLD_SIZE * FRAMES
+    assert a["world_size"] == c["world_size"] == WORLD_SIZE
+    # a killed-and-resumed run continues exactly: the weights, and each rank's environments
+    for name, value in a["networks"].items():
+        torch.testing.assert_close(c["networks"][name], value, atol=0, rtol=0)
+    torch.testing.assert_close(c["simulator"], a["simulator"], atol=0, rtol=0)
+    (rank1_a,), (rank1_c,) = a["rank_states"], c["rank_states"]
+    torch.testing.assert_close(rank1_c["simulator"], rank1_a["simulator"], atol=0, rtol=0)
+    torch.testing.assert_close(rank1_c["torch_rng"], rank1_a["torch_rng"], atol=0, rtol=0)
+    # each rank has environments of its own (seed run.seed + rank)
+    simulators = a["simulator"], rank1_a["simulator"]
+    assert any(not torch.equal(simulators[0][key], simulators[1][key]) for key in simulators[0])
+
+
+@pytest.mark.slow
+def test_the_recipes_under_torchrun_write_from_rank_zero_alone(tmp_path):
+    def torchrun(script: str, *overrides: str) -> subprocess.CompletedProcess:
+        command = [sys.executable, "-m", "torch.distributed.run", "--standalone"]
+        return subprocess.run(
+            [*command, f"--nproc_per_node={WORLD_SIZE}", str(ROOT / "recipes" / script)]
+            + ["--config-name", "smoke", *overrides],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            timeout=300,
+            env={**os.environ, "OMP_NUM_THREADS": "1"},
+        )
+
+    pretrain = torchrun("mapoca_pretrain.py", "run.total_env_steps=64", "run.eval_every=1")
+    assert pretrain.returncode == 0, pretrain.stderr
+    # one Hydra folder (rank 0's), one line of summary
+    (run_dir,) = [path.parent for path in tmp_path.glob("outputs/*/*/config.yaml")]
+    assert pretrain.stdout.count("env-steps in 1 iterations") == 1
+    last = load_checkpoint(run_dir / "checkpoints/last.pt")
+    assert last["env_steps"] == 64 and last["world_size"] == WORLD_SIZE
+
+    finetune = torchrun(
+        "mapoca_finetune.py",
+        f"run.pretrained={run_dir}/checkpoints/last.pt",
+        "env.grid_size=10",
+        "env.num_agents=6",
+        "run.total_env_steps=64",
+        "hydra.run.dir=finetune",
+    )
+    assert finetune.returncode == 0, finetune.stderr
+    tuned = load_checkpoint(tmp_path / "finetune/checkpoints/last.pt")
+    assert tuned["env_config"]["num_agents"] == 6 and tuned["iteration"] == 1
+
+    # resumed by one process: rank 0's environments continue, rank 1's are left behind
+    single = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "mapoca_pretrain.py"), "--config-name", "smoke"]
+        + [f"run.resume={run_dir}/checkpoints/last.pt", "run.total_env_steps=96"]
+        + ["hydra.run.dir=single"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert single.returncode == 0, single.stderr
+    assert "trained by 2 process(es) and continues with 1" in single.stdout
+    assert load_checkpoint(tmp_path / "single/checkpoints/last.pt")["env_steps"] == 96
+
+
+def test_without_a_process_group_the_helpers_change_nothing():
+    assert not distributed.is_distributed()
+    assert (distributed.world_size(), distributed.rank()) == (1, 0)
+    assert distributed.is_main_process()
+    value = torch.arange(3.0)
+    assert distributed.average(value) is value
+    assert distributed.any_process(True) and not distributed.any_process(False)
+    assert distributed.gather_to_main({"x": value}) == [{"x": value}]
+    metrics = {"episodes": 2.0, "loss_critic": 0.5}
+    assert distributed.combine_metrics(metrics, summed=["episodes"]) is metrics
+    state = {"simulator": 1, "carry": 2, "optimizer": 3}
+    assert distributed.rank_entries(state, ["simulator", "carry"]) == {"simulator": 1, "carry": 2}
+
+
+def test_under_torchrun_a_gpu_index_or_more_processes_than_gpus_are_refused(monkeypatch):
+    monkeypatch.setenv("WORLD_SIZE", "4")
+    monkeypatch.setenv("LOCAL_WORLD_SIZE", "4")
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    with pytest.raises(ValueError, match="run.device='cuda:1', but under torchrun run.device"):
+        distributed.init_process_group("cuda:1", key="run.device")
+    message = (
+        "torchrun started 4 processes on this host, which has 2 CUDA device.s.: one process "
+        "per GPU, so use --nproc_per_node=2 or fewer"
+    )
+    with pytest.raises(ValueError, match=message):
+        distributed.init_process_group("cuda", key="run.device")
