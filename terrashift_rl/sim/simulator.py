@@ -95,15 +95,17 @@ class Simulator:
         return self._views[name]
 
     def state_dict(self) -> dict[str, torch.Tensor]:
-        """Copies of every data array: the whole state of every environment."""
+        """Copies of every data array but the scratch ones: the whole state of every
+        environment."""
         return {
             name: self.view(name).clone()
             for name, value in vars(self.data).items()
-            if isinstance(value, wp.array)
+            if isinstance(value, wp.array) and name not in Data.SCRATCH
         }
 
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
-        """Restores a :meth:`state_dict`; shapes must match this simulator's."""
+        """Restores a :meth:`state_dict` (one that holds the scratch arrays too loads as
+        well); shapes must match this simulator's."""
         missing = sorted(set(self.state_dict()) - set(state))
         if missing:
             raise ValueError(f"simulator state lacks {missing}")
@@ -186,6 +188,7 @@ class Simulator:
                     d.agent_angular_velocity,
                     d.agent_amplitude,
                     d.agent_sigma,
+                    d.agent_frame,
                 ],
             )
             self._launch_heights(masked=False, keep_velocity=True)
@@ -214,6 +217,7 @@ class Simulator:
                 d.agent_angular_velocity,
                 d.agent_amplitude,
                 d.agent_sigma,
+                d.agent_frame,
                 d.goal_cell,
                 d.sphere_active,
                 d.spawn_timer,
@@ -258,9 +262,8 @@ class Simulator:
                 int(masked),
                 int(keep_velocity),
                 d.agent_position,
-                d.agent_angle,
                 d.agent_amplitude,
-                d.agent_sigma,
+                d.agent_frame,
                 d.column_height_prev,
                 d.column_height,
             ],

@@ -23,6 +23,15 @@ def wrap_offset(d: float, period: float) -> float:
     return d - period * wp.floor(d / period + 0.5)
 
 
+@wp.func
+def wavelet_frame(angle: float, sigma: wp.vec2) -> wp.vec4:
+    """What the height sum needs of a wavelet's angle and widths: (cos theta, sin theta,
+    1 / sigma_x^2, 1 / sigma_y^2)."""
+    return wp.vec4(
+        wp.cos(angle), wp.sin(angle), 1.0 / (sigma[0] * sigma[0]), 1.0 / (sigma[1] * sigma[1])
+    )
+
+
 @wp.kernel
 def update_agents(
     model: Model,
@@ -33,8 +42,10 @@ def update_agents(
     angular_velocity: wp.array2d(dtype=float),
     amplitude: wp.array2d(dtype=float),
     sigma: wp.array2d(dtype=wp.vec2),
+    frame: wp.array2d(dtype=wp.vec4),
 ):
-    """Applies one physics tick of action deltas to every wavelet. Launch dim: [num_envs, K]."""
+    """Applies one physics tick of action deltas to every wavelet and derives its
+    :func:`wavelet_frame`. Launch dim: [num_envs, K]."""
     e, k = wp.tid()
     step = model.wave_step
     vmax = model.max_velocity
@@ -101,6 +112,7 @@ def update_agents(
     angular_velocity[e, k] = w
     amplitude[e, k] = amp
     sigma[e, k] = s
+    frame[e, k] = wavelet_frame(theta, s)
 
 
 @wp.kernel
@@ -110,9 +122,8 @@ def compute_heights(
     use_mask: int,
     keep_velocity: int,
     position: wp.array2d(dtype=wp.vec2),
-    angle: wp.array2d(dtype=float),
     amplitude: wp.array2d(dtype=float),
-    sigma: wp.array2d(dtype=wp.vec2),
+    frame: wp.array2d(dtype=wp.vec4),
     height_prev: wp.array3d(dtype=float),
     height: wp.array3d(dtype=float),
 ):
@@ -133,15 +144,11 @@ def compute_heights(
         if model.wrap_edges != 0:
             dx = wrap_offset(dx, g)
             dy = wrap_offset(dy, g)
-        c = wp.cos(angle[e, k])
-        s = wp.sin(angle[e, k])
+        f = frame[e, k]
         # rotate the offset by -theta into the wavelet's frame
-        xr = c * dx + s * dy
-        yr = -s * dx + c * dy
-        sg = sigma[e, k]
-        total += amplitude[e, k] * wp.exp(
-            -0.5 * (xr * xr / (sg[0] * sg[0]) + yr * yr / (sg[1] * sg[1]))
-        )
+        xr = f[0] * dx + f[1] * dy
+        yr = -f[1] * dx + f[0] * dy
+        total += amplitude[e, k] * wp.exp(-0.5 * (xr * xr * f[2] + yr * yr * f[3]))
     hmax = model.max_column_height
     h = wp.clamp(total, -hmax, hmax)
     if keep_velocity != 0:
