@@ -18,9 +18,10 @@ TWO_PI = wp.constant(6.283185307179586)
 
 
 @wp.func
-def wrap_offset(d: float, period: float) -> float:
-    """Maps an offset to [-period / 2, period / 2)."""
-    return d - period * wp.floor(d / period + 0.5)
+def wrap_offset(d: float, period: float, inverse_period: float) -> float:
+    """Maps an offset to [-period / 2, period / 2) (``inverse_period`` is 1 / period: a
+    product costs less than a quotient)."""
+    return d - period * wp.floor(d * inverse_period + 0.5)
 
 
 @wp.func
@@ -136,14 +137,15 @@ def compute_heights(
     if use_mask != 0 and not env_mask[e]:
         return
     g = float(model.grid_size)
+    inverse_g = 1.0 / g
     total = float(0.0)
     for k in range(model.num_agents):
         p = position[e, k]
         dx = float(ix) - p[0]
         dy = float(iy) - p[1]
         if model.wrap_edges != 0:
-            dx = wrap_offset(dx, g)
-            dy = wrap_offset(dy, g)
+            dx = wrap_offset(dx, g, inverse_g)
+            dy = wrap_offset(dy, g, inverse_g)
         f = frame[e, k]
         # rotate the offset by -theta into the wavelet's frame
         xr = f[0] * dx + f[1] * dy
