@@ -33,41 +33,53 @@ def cast_heightmap(
     """Casts one vertical ray per lattice point; the lattice spans the platform edge to edge.
 
     The highest hit of columns and active spheres is recorded; a miss reads as -1.
-    Launch dim: [num_envs, R, R] as (env, row = y, column = x).
+    Launch dim: [num_envs, R] as (env, column = x): a thread casts the R rays of one lattice
+    column, the columns first, then raises the rays that a sphere covers, visiting only the
+    spheres that reach over its lattice column (most reach over none).
     """
-    e, ry, rx = wp.tid()
+    e, rx = wp.tid()
     step = 2.0 * model.half_platform / float(model.heightmap_resolution - 1)
     x = -model.half_platform + float(rx) * step
-    y = -model.half_platform + float(ry) * step
-    z = float(MISS)
-
     g = model.grid_size
     ix = wp.clamp(int(wp.floor((x + model.half_platform) / model.cell_size)), 0, g - 1)
-    iy = wp.clamp(int(wp.floor((y + model.half_platform) / model.cell_size)), 0, g - 1)
-    if model.column_shape == SHAPE_BOX:
-        z = column_top(model, height, height, e, iy, ix, 1.0)
-    elif model.column_shape == SHAPE_ELLIPSOID:
-        a = model.column_half_width
-        dx = x - column_center(model, ix)
-        dy = y - column_center(model, iy)
-        rho2 = (dx * dx + dy * dy) / (a * a)
-        if rho2 <= 1.0 + 1.0e-5:  # rays on the platform edge graze the outer columns
-            top = column_top(model, height, height, e, iy, ix, 1.0)
-            z = top - model.column_half_height * (1.0 - wp.sqrt(wp.max(1.0 - rho2, 0.0)))
-    else:
-        z = smooth_surface(model, height, height, e, x, y, 1.0)[0]
+    dx = x - column_center(model, ix)
+    for ry in range(model.heightmap_resolution):
+        y = -model.half_platform + float(ry) * step
+        z = float(MISS)
+        iy = wp.clamp(int(wp.floor((y + model.half_platform) / model.cell_size)), 0, g - 1)
+        if model.column_shape == SHAPE_BOX:
+            z = column_top(model, height, height, e, iy, ix, 1.0)
+        elif model.column_shape == SHAPE_ELLIPSOID:
+            a = model.column_half_width
+            dy = y - column_center(model, iy)
+            rho2 = (dx * dx + dy * dy) / (a * a)
+            if rho2 <= 1.0 + 1.0e-5:  # rays on the platform edge graze the outer columns
+                top = column_top(model, height, height, e, iy, ix, 1.0)
+                z = top - model.column_half_height * (1.0 - wp.sqrt(wp.max(1.0 - rho2, 0.0)))
+        else:
+            z = smooth_surface(model, height, height, e, x, y, 1.0)[0]
+        if z == MISS:
+            heightmap[e, 0, ry, rx] = -1.0
+        else:
+            heightmap[e, 0, ry, rx] = normalised_height(model, z)
 
+    # normalised_height never decreases with the height, so the highest hit can be taken after
+    # normalising
     r = model.sphere_radius
+    last = model.heightmap_resolution - 1
     for j in range(model.num_objects):
         if active[e, j] != 0:
             p = position[e, j]
-            d2 = (p[0] - x) * (p[0] - x) + (p[1] - y) * (p[1] - y)
-            if d2 <= r * r:
-                z = wp.max(z, p[2] + wp.sqrt(r * r - d2))
-    if z == MISS:
-        heightmap[e, 0, ry, rx] = -1.0
-    else:
-        heightmap[e, 0, ry, rx] = normalised_height(model, z)
+            if (p[0] - x) * (p[0] - x) <= r * r:
+                # the rows within reach of the sphere, widened to whole rows
+                lo = int(wp.floor((p[1] - r + model.half_platform) / step))
+                hi = int(wp.ceil((p[1] + r + model.half_platform) / step))
+                for ry in range(wp.max(lo, 0), wp.min(hi, last) + 1):
+                    y = -model.half_platform + float(ry) * step
+                    d2 = (p[0] - x) * (p[0] - x) + (p[1] - y) * (p[1] - y)
+                    if d2 <= r * r:
+                        top = normalised_height(model, p[2] + wp.sqrt(r * r - d2))
+                        heightmap[e, 0, ry, rx] = wp.max(heightmap[e, 0, ry, rx], top)
 
 
 @wp.kernel

@@ -323,7 +323,7 @@ class Simulator:
         n, r = self.num_envs, self.config.heightmap_resolution
         wp.launch(
             observations.cast_heightmap,
-            dim=(n, r, r),
+            dim=(n, r),
             inputs=[m, d.column_height, d.sphere_active, d.sphere_position, d.heightmap],
         )
         wp.launch(
