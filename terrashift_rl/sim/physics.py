@@ -435,8 +435,8 @@ def combined_velocity_change(model: Model, impulses: ColumnImpulses) -> wp.spati
     return wp.spatial_vector(dv[0], dv[1], dv[2], dw[0], dw[1], dw[2])
 
 
-@wp.kernel
-def substep(
+@wp.func
+def advance_sphere(
     model: Model,
     frac: float,
     height_prev: wp.array3d(dtype=float),
@@ -448,13 +448,17 @@ def substep(
     position_out: wp.array2d(dtype=wp.vec3),
     velocity_out: wp.array2d(dtype=wp.vec3),
     angular_velocity_out: wp.array2d(dtype=wp.vec3),
+    e: int,
+    j: int,
 ):
-    """Advances every sphere by one substep. Launch dim: [num_envs, M].
+    """Advances sphere ``j`` of environment ``e`` by one substep, from the ``_in`` state of
+    every sphere to its own ``_out`` state.
 
-    ``frac`` is the fraction of the tick reached in the middle of this substep; column tops
-    are interpolated to it.
+    ``frac`` is the fraction of the tick reached in the middle of this substep, (s + 1/2) /
+    substeps; column tops are interpolated to it. A contact's impulse over the substep is
+    then that of the columns' mean position over it, so a column that starts or stops with
+    the tick is not felt a whole substep early or late.
     """
-    e, j = wp.tid()
     p = position_in[e, j]
     v = velocity_in[e, j]
     w = angular_velocity_in[e, j]
@@ -561,3 +565,82 @@ def substep(
     position_out[e, j] = p + v * dt
     velocity_out[e, j] = v
     angular_velocity_out[e, j] = w
+
+
+@wp.kernel
+def substep(
+    model: Model,
+    frac: float,
+    height_prev: wp.array3d(dtype=float),
+    height: wp.array3d(dtype=float),
+    active: wp.array2d(dtype=wp.int32),
+    position_in: wp.array2d(dtype=wp.vec3),
+    velocity_in: wp.array2d(dtype=wp.vec3),
+    angular_velocity_in: wp.array2d(dtype=wp.vec3),
+    position_out: wp.array2d(dtype=wp.vec3),
+    velocity_out: wp.array2d(dtype=wp.vec3),
+    angular_velocity_out: wp.array2d(dtype=wp.vec3),
+):
+    """Advances every sphere by one substep (:func:`advance_sphere`). Launch dim:
+    [num_envs, M]."""
+    e, j = wp.tid()
+    advance_sphere(
+        model,
+        frac,
+        height_prev,
+        height,
+        active,
+        position_in,
+        velocity_in,
+        angular_velocity_in,
+        position_out,
+        velocity_out,
+        angular_velocity_out,
+        e,
+        j,
+    )
+
+
+@wp.kernel
+def tick_substeps(
+    model: Model,
+    height_prev: wp.array3d(dtype=float),
+    height: wp.array3d(dtype=float),
+    active: wp.array2d(dtype=wp.int32),
+    position: wp.array2d(dtype=wp.vec3),
+    velocity: wp.array2d(dtype=wp.vec3),
+    angular_velocity: wp.array2d(dtype=wp.vec3),
+    position_next: wp.array2d(dtype=wp.vec3),
+    velocity_next: wp.array2d(dtype=wp.vec3),
+    angular_velocity_next: wp.array2d(dtype=wp.vec3),
+):
+    """Advances every sphere of an environment through all substeps of one tick, as many
+    launches of :func:`substep` would. Launch dim: [num_envs].
+
+    One thread per environment, so that a substep can follow the previous one without a
+    launch in between: every sphere's next state goes to the ``_next`` arrays, and only once
+    all of them are there do they become the current state.
+    """
+    e = wp.tid()
+    for s in range(model.substeps):
+        frac = (float(s) + 0.5) / float(model.substeps)
+        for j in range(model.num_objects):
+            advance_sphere(
+                model,
+                frac,
+                height_prev,
+                height,
+                active,
+                position,
+                velocity,
+                angular_velocity,
+                position_next,
+                velocity_next,
+                angular_velocity_next,
+                e,
+                j,
+            )
+        for j in range(model.num_objects):
+            position[e, j] = position_next[e, j]
+            velocity[e, j] = velocity_next[e, j]
+            angular_velocity[e, j] = angular_velocity_next[e, j]

@@ -68,6 +68,7 @@ class Model:
     gravity: float
 
     tick_dt: float
+    substeps: int
     substep_dt: float
 
     goal_radius: float
@@ -211,6 +212,7 @@ def build_model(config: TerraShiftConfig) -> Model:
     m.gravity = config.gravity
 
     m.tick_dt = config.tick_dt
+    m.substeps = config.substeps
     m.substep_dt = config.substep_dt
 
     m.goal_radius = config.goal_radius

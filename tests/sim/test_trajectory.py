@@ -54,12 +54,12 @@ shift of the sphere as a large change of height). Column heights hold no chaos, 
 round-off of the wavelet sums (as in test_wave)."""
 
 
-def new_simulator() -> Simulator:
-    return Simulator(TerraShiftConfig(), num_envs=NUM_ENVS, seed=SEED)
+def new_simulator(**options) -> Simulator:
+    return Simulator(TerraShiftConfig(), num_envs=NUM_ENVS, seed=SEED, **options)
 
 
 def snapshot(sim: Simulator, names) -> dict[str, np.ndarray]:
-    return {name: sim.view(name).numpy().copy() for name in names}
+    return {name: sim.view(name).cpu().numpy().copy() for name in names}
 
 
 def record() -> dict[str, np.ndarray]:
@@ -83,9 +83,10 @@ def record() -> dict[str, np.ndarray]:
     return data
 
 
-def replay(data: dict[str, np.ndarray], segment: int) -> dict[str, np.ndarray]:
-    """Replays one segment from its recorded start: the same arrays for its decisions."""
-    sim = new_simulator()
+def replay(data: dict[str, np.ndarray], segment: int, **options) -> dict[str, np.ndarray]:
+    """Replays one segment from its recorded start: the same arrays for its decisions.
+    ``options`` go to the :class:`Simulator` (device, fuse_substeps)."""
+    sim = new_simulator(**options)
     state = sim.state_dict()
     for name in state:
         if f"state/{name}" in data:
@@ -93,7 +94,7 @@ def replay(data: dict[str, np.ndarray], segment: int) -> dict[str, np.ndarray]:
     sim.load_state_dict(state)
     observed, fields = [], {}
     for decision in range(segment * SEGMENT, (segment + 1) * SEGMENT):
-        sim.step(torch.from_numpy(data["action"][decision]))
+        sim.step(torch.from_numpy(data["action"][decision]).to(sim.torch_device))
         observed.append(snapshot(sim, OBSERVED))
         if decision % SEGMENT == 0:
             fields = snapshot(sim, FIELDS)
@@ -117,9 +118,11 @@ def test_the_recording_is_a_lively_scene(recorded):
     assert np.ptp(recorded["column_height"], axis=0).max() > 0.05  # the columns move
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])
+@pytest.mark.parametrize("fuse_substeps", [True, False], ids=["fused", "per_substep"])
 @pytest.mark.parametrize("segment", range(DECISIONS // SEGMENT))
-def test_replay_matches_the_recorded_trajectory(recorded, segment):
-    replayed = replay(recorded, segment)
+def test_replay_matches_the_recorded_trajectory(recorded, segment, fuse_substeps, device):
+    replayed = replay(recorded, segment, device=device, fuse_substeps=fuse_substeps)
     decisions = slice(segment * SEGMENT, (segment + 1) * SEGMENT)
     for name in OBSERVED:
         np.testing.assert_allclose(
