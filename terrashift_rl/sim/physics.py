@@ -510,8 +510,22 @@ def advance_sphere(
         k0 = int(wp.floor((p[1] - r + half) / model.cell_size))
         k1 = int(wp.floor((p[1] + r + half) / model.cell_size))
         if i1 >= 0 and i0 < g and k1 >= 0 and k0 < g:
-            for iy in range(wp.max(k0, 0), wp.min(k1, g - 1) + 1):
-                for ix in range(wp.max(i0, 0), wp.min(i1, g - 1) + 1):
+            # The columns under the sphere are visited row by row, as nested loops would, but
+            # the exact contact, the costly part, has a loop of its own whose every pass takes
+            # the next column that the cheap test keeps: the threads of a GPU warp then share
+            # as many passes as the most such columns any one of them has, not one at every
+            # column where any of them needs it.
+            i0 = wp.max(i0, 0)
+            i1 = wp.min(i1, g - 1)
+            k1 = wp.min(k1, g - 1)
+            ix = i0
+            iy = wp.max(k0, 0)
+            while iy <= k1:
+                found = int(0)
+                column_x = int(0)
+                column_y = int(0)
+                top = float(0.0)
+                while found == 0 and iy <= k1:
                     top = column_top(model, height_prev, height, e, iy, ix, frac)
                     cx = column_center(model, ix)
                     cy = column_center(model, iy)
@@ -522,27 +536,37 @@ def advance_sphere(
                     gx = wp.max(wp.abs(p[0] - cx) - a, 0.0)
                     gy = wp.max(wp.abs(p[1] - cy) - a, 0.0)
                     reach = r * r - gx * gx - gy * gy
-                    if reach <= 0.0 or top < p[2] - wp.sqrt(reach):
-                        continue
-                    nd = wp.vec4()
-                    if model.column_shape == SHAPE_BOX:
-                        nd = box_contact(model, p, cx, cy, top)
-                    else:
-                        nd = ellipsoid_contact(model, p, cx, cy, top)
-                    overlap = r - nd[3]
-                    if overlap > 0.0:
-                        surface_velocity = wp.vec3(
-                            0.0, 0.0, column_speed(model, height_prev, height, e, iy, ix)
-                        )
-                        impulses = add_column_contact(
-                            model,
-                            impulses,
-                            v,
-                            w,
-                            wp.vec3(nd[0], nd[1], nd[2]),
-                            overlap,
-                            surface_velocity,
-                        )
+                    if not (reach <= 0.0 or top < p[2] - wp.sqrt(reach)):
+                        found = 1
+                        column_x = ix
+                        column_y = iy
+                    ix += 1
+                    if ix > i1:
+                        ix = i0
+                        iy += 1
+                if found == 0:
+                    break
+                cx = column_center(model, column_x)
+                cy = column_center(model, column_y)
+                nd = wp.vec4()
+                if model.column_shape == SHAPE_BOX:
+                    nd = box_contact(model, p, cx, cy, top)
+                else:
+                    nd = ellipsoid_contact(model, p, cx, cy, top)
+                overlap = r - nd[3]
+                if overlap > 0.0:
+                    surface_velocity = wp.vec3(
+                        0.0, 0.0, column_speed(model, height_prev, height, e, column_y, column_x)
+                    )
+                    impulses = add_column_contact(
+                        model,
+                        impulses,
+                        v,
+                        w,
+                        wp.vec3(nd[0], nd[1], nd[2]),
+                        overlap,
+                        surface_velocity,
+                    )
     elif wp.abs(p[0]) < half + r and wp.abs(p[1]) < half + r:
         sc = smooth_contact(model, height_prev, height, e, p, frac)
         overlap = r - sc[3]
