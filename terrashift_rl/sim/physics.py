@@ -591,7 +591,13 @@ def advance_sphere(
     angular_velocity_out[e, j] = w
 
 
-@wp.kernel
+CONTACT_MAX_REGISTERS = 128
+"""Registers a GPU thread of the sphere kernels may use. Unbounded they take 180-250, so that
+a multiprocessor (64 K registers) holds 8 warps of them; at 128 it holds 16, twice the threads
+to hide latency with, for a few spills to the L1 cache."""
+
+
+@wp.kernel(cuda_max_registers=CONTACT_MAX_REGISTERS)
 def substep(
     model: Model,
     frac: float,
@@ -625,7 +631,7 @@ def substep(
     )
 
 
-@wp.kernel
+@wp.kernel(cuda_max_registers=CONTACT_MAX_REGISTERS)
 def tick_substeps(
     model: Model,
     height_prev: wp.array3d(dtype=float),
