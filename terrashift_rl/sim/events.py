@@ -12,6 +12,8 @@ from terrashift_rl.sim.physics import column_center
 from terrashift_rl.sim.types import Model
 from terrashift_rl.sim.wave import wavelet_frame
 
+wp.set_module_options({"enable_backward": False})  # nothing differentiates through it
+
 
 @wp.func
 def uniform(rng: wp.array(dtype=wp.uint32), e: int, low: float, high: float) -> float:

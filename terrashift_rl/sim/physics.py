@@ -24,6 +24,8 @@ import warp as wp
 
 from terrashift_rl.sim.types import SHAPE_BOX, SHAPE_ELLIPSOID, Model
 
+wp.set_module_options({"enable_backward": False})  # nothing differentiates through it
+
 
 @wp.func
 def column_top(

@@ -17,6 +17,8 @@ from terrashift_rl.sim import events, observations, physics, wave
 from terrashift_rl.sim.config import TerraShiftConfig
 from terrashift_rl.sim.types import ACTION_DIM, Data, build_model
 
+wp.set_module_options({"enable_backward": False})  # nothing differentiates through it
+
 _KERNEL_MODULES = (wave, physics, events, observations)
 _INT32_MAX = 2**31 - 1
 _FUSED_ENVS_PER_SM = 256

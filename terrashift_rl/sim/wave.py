@@ -14,6 +14,8 @@ import warp as wp
 
 from terrashift_rl.sim.types import ACTION_TARGET, Model
 
+wp.set_module_options({"enable_backward": False})  # nothing differentiates through it
+
 TWO_PI = wp.constant(6.283185307179586)
 
 
