@@ -340,7 +340,7 @@ class Simulator:
         )
         wp.launch(
             observations.gather_features,
-            dim=n,
+            dim=(n, max(self.config.num_objects, self.config.num_agents)),
             inputs=[
                 m,
                 d.column_height,
