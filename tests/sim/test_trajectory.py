@@ -9,7 +9,9 @@ The scene is chaotic: a 1e-7 m nudge to the spheres grows about threefold every 
 (to 1e-5 m after 20). A free run of 64 decisions would therefore fail on any change of float
 round-off, a reordered sum or a fused multiply-add, however correct. So the recording keeps the
 whole state at the start of every segment of ``SEGMENT`` decisions, and each segment is
-replayed from its own start: round-off then grows over at most ``SEGMENT`` decisions.
+replayed from its own start: round-off then grows over at most ``SEGMENT`` decisions. The
+same tolerances hold both ways of launching the substeps and, on a GPU, the CUDA kernels to
+this CPU recording.
 """
 
 from pathlib import Path
@@ -50,8 +52,9 @@ over a segment, with a margin of 10 or more. Emulated round-off, a relative kick
 to every sphere state and column height before every decision, moved them by at most 5e-7 m,
 1.4e-5 m/s, 8e-5 rad/s (slipping contacts turn small differences of slip into spin), 6e-6
 (distances times distance_scale = 100) and 3e-6 (a ray grazing a sphere's rim sees a small
-shift of the sphere as a large change of height). Column heights hold no chaos, only the
-round-off of the wavelet sums (as in test_wave)."""
+shift of the sphere as a large change of height); kicks ten times larger stay within the
+tolerances too. Column heights hold no chaos, only the round-off of the wavelet sums (as in
+test_wave)."""
 
 
 def new_simulator(**options) -> Simulator:
