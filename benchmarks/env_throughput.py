@@ -1,20 +1,23 @@
 """Environment throughput: env-steps/s (decisions, action repeat included) against num_envs.
 
-Two paths are timed at every size: the raw simulator step (``Simulator.step`` with a fixed
-action tensor) and the TorchRL environment (``env.step_and_maybe_reset``, what collectors
-call, including the key plumbing and resets). Prints a table and writes JSON.
+At every size the simulator's step (``Simulator.step`` with a fixed action tensor) is timed both
+ways of launching the substeps (``fuse_substeps``: a tick's substeps in one launch, or a launch
+each); its default picks one by size, and the table's *simulator* column is the default's. Then
+the TorchRL environment (``env.step_and_maybe_reset``, what collectors call, including the key
+plumbing and resets). Prints a table and writes JSON (after every size).
 
-    python benchmarks/env_throughput.py --device cuda
+    python benchmarks/env_throughput.py --device cuda --profile 65536
     python benchmarks/env_throughput.py --device cpu --num-envs 1 64 --seconds 2
-    python benchmarks/env_throughput.py --device cuda --num-envs 65536 --profile
 
-``--profile`` adds, for each size, the GPU time of every kernel over eager (non-graph) steps,
-summed by kernel name: where a step's time goes.
+``--profile N ...`` then adds, at each size N (each measured size if none is given), the GPU
+time and launch count of every kernel over eager (non-graph) steps, both ways of launching the
+substeps: where a step's time goes.
 """
 
 from __future__ import annotations
 
 import argparse
+import subprocess
 import time
 from datetime import date
 from pathlib import Path
@@ -27,6 +30,8 @@ from terrashift_rl.envs import GROUP, TerraShiftEnv
 from terrashift_rl.sim import Simulator, TerraShiftConfig
 
 DEFAULT_SIZES = [1, 4, 16, 64, 256, 1024, 4096, 16384, 65536]
+LAUNCHES = {True: "fused", False: "per_substep"}
+"""JSON names of the two ways of launching the substeps, by ``fuse_substeps``."""
 
 
 def _sync(device: torch.device) -> None:
@@ -55,9 +60,14 @@ def measure(config: TerraShiftConfig, num_envs: int, device: torch.device, secon
     generator = torch.Generator(device=device).manual_seed(0)
     action = torch.rand(num_envs, k, 6, device=device, generator=generator) * 2 - 1
 
-    sim = Simulator(config, num_envs=num_envs, device=device, seed=0)
-    sim.reset()
-    sim_rate = _rate(lambda: sim.step(action), num_envs, device, seconds, warmup=5)
+    row = {"num_envs": num_envs}
+    for fused in (True, False):
+        sim = Simulator(config, num_envs=num_envs, device=device, seed=0, fuse_substeps=fused)
+        sim.reset()
+        row[f"sim_steps_per_s_{LAUNCHES[fused]}"] = _rate(
+            lambda sim=sim: sim.step(action), num_envs, device, seconds, warmup=5
+        )
+        del sim
 
     env = TerraShiftEnv(config, num_envs=num_envs, device=device, seed=0)
     state = {"td": env.reset()}
@@ -67,14 +77,18 @@ def measure(config: TerraShiftConfig, num_envs: int, device: torch.device, secon
         td.set((GROUP, "action"), action)
         _, state["td"] = env.step_and_maybe_reset(td)
 
-    env_rate = _rate(env_step, num_envs, device, seconds, warmup=5)
-    return {"num_envs": num_envs, "sim_steps_per_s": sim_rate, "env_steps_per_s": env_rate}
+    row["fuse_substeps"] = env.sim.fuse_substeps  # what a default simulator does at this size
+    row["sim_steps_per_s"] = row[f"sim_steps_per_s_{LAUNCHES[env.sim.fuse_substeps]}"]
+    row["env_steps_per_s"] = _rate(env_step, num_envs, device, seconds, warmup=5)
+    return row
 
 
-def profile(config: TerraShiftConfig, num_envs: int, device: torch.device) -> dict:
-    """GPU milliseconds per step of each kernel, from eager launches (CUDA only)."""
+def profile(config: TerraShiftConfig, num_envs: int, device: torch.device, fused: bool) -> dict:
+    """GPU milliseconds and launches per step of each kernel, from eager launches (CUDA only)."""
     steps = 10
-    sim = Simulator(config, num_envs=num_envs, device=device, seed=0, cuda_graph=False)
+    sim = Simulator(
+        config, num_envs=num_envs, device=device, seed=0, cuda_graph=False, fuse_substeps=fused
+    )
     sim.reset()
     action = torch.zeros(sim.action_shape, device=device)
     for _ in range(3):
@@ -83,11 +97,31 @@ def profile(config: TerraShiftConfig, num_envs: int, device: torch.device) -> di
     for _ in range(steps):
         sim.step(action)
     results = wp.timing_end()
-    per_kernel: dict[str, float] = {}
+    per_kernel: dict[str, dict] = {}
     for result in results:
-        name = result.name.split("_cuda_kernel")[0]
-        per_kernel[name] = per_kernel.get(name, 0.0) + result.elapsed / steps
-    return dict(sorted(per_kernel.items(), key=lambda item: -item[1]))
+        # "forward kernel <name>_<hash>": the kernel's name is what the docs cite
+        name = result.name.split()[-1].rsplit("_", 1)[0]
+        entry = per_kernel.setdefault(name, {"ms": 0.0, "launches": 0})
+        entry["ms"] += result.elapsed
+        entry["launches"] += 1
+    for entry in per_kernel.values():
+        entry["ms"] /= steps
+        entry["launches"] //= steps
+    return dict(sorted(per_kernel.items(), key=lambda item: -item[1]["ms"]))
+
+
+def _commit() -> str | None:
+    """The measured code's commit, if it runs from a git checkout."""
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            cwd=Path(__file__).parent,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
 
 
 def main() -> None:
@@ -97,40 +131,67 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=2.0, help="timing window per size")
     parser.add_argument("--column-shape", default="ellipsoid")
     parser.add_argument("--out", type=Path, default=None, help="JSON path (default by device)")
-    parser.add_argument("--profile", action="store_true", help="per-kernel GPU time per step")
+    parser.add_argument(
+        "--profile",
+        type=int,
+        nargs="*",
+        metavar="N",
+        help="time every kernel at these sizes, at every measured size if none (CUDA only)",
+    )
     args = parser.parse_args()
+    profile_sizes = [] if args.profile is None else args.profile or args.num_envs
 
     device = torch.device(args.device)
+    if profile_sizes and device.type != "cuda":
+        parser.error("--profile times GPU kernels: it needs --device cuda")
     config = TerraShiftConfig.preset("pretrain", column_shape=args.column_shape)
     name = device_name(device)
-    print(f"TerraShift env throughput, pretrain scene ({config.column_shape}), {name}")
-    print(f"{'num_envs':>9} | {'simulator env-steps/s':>22} | {'TorchRL env env-steps/s':>24}")
-    rows = []
-    for n in args.num_envs:
-        row = measure(config, n, device, args.seconds)
-        rows.append(row)
-        print(f"{n:>9} | {row['sim_steps_per_s']:>22,.0f} | {row['env_steps_per_s']:>24,.0f}")
-        if args.profile and device.type == "cuda":
-            row["kernel_ms_per_step"] = profile(config, n, device)
-            total = sum(row["kernel_ms_per_step"].values())
-            for name, ms in row["kernel_ms_per_step"].items():
-                print(f"{'':>9}   {name:<40} {ms:8.3f} ms/step ({100 * ms / total:4.1f}%)")
-
     out = args.out or Path(__file__).parent / "results" / f"env_throughput_{device.type}.json"
     payload = {
         "benchmark": "env_throughput",
         "date": date.today().isoformat(),
         "device": name,
         "torch": torch.__version__,
+        "warp": wp.__version__,
+        "commit": _commit(),
         "config": {
             "preset": "pretrain",
             "column_shape": config.column_shape,
             "substeps": config.substeps,
             "action_repeat": config.action_repeat,
         },
-        "rows": rows,
+        "rows": [],
+        "profiles": [],
     }
-    write_results(out, payload)
+    print(f"TerraShift env throughput, pretrain scene ({config.column_shape}), {name}")
+    print(
+        f"{'num_envs':>9} | {'simulator':>11} | {'substeps':>11} | {'fused':>11} | "
+        f"{'per substep':>11} | {'TorchRL env':>11}   (env-steps/s)"
+    )
+    for n in args.num_envs:
+        row = measure(config, n, device, args.seconds)
+        payload["rows"].append(row)
+        write_results(out, payload)
+        print(
+            f"{n:>9} | {row['sim_steps_per_s']:>11,.0f} | {LAUNCHES[row['fuse_substeps']]:>11} | "
+            f"{row['sim_steps_per_s_fused']:>11,.0f} | {row['sim_steps_per_s_per_substep']:>11,.0f}"
+            f" | {row['env_steps_per_s']:>11,.0f}"
+        )
+    for n in profile_sizes:
+        for fused in (True, False):
+            kernels = profile(config, n, device, fused)
+            payload["profiles"].append(
+                {"num_envs": n, "fuse_substeps": fused, "kernel_ms_per_step": kernels}
+            )
+            write_results(out, payload)
+            total = sum(entry["ms"] for entry in kernels.values())
+            print(f"\nkernels per step at {n} environments, substeps {LAUNCHES[fused]}:")
+            for kernel, entry in kernels.items():
+                print(
+                    f"  {kernel:<24} {entry['ms']:8.3f} ms {100 * entry['ms'] / total:5.1f}%"
+                    f"  {entry['launches']:3d} launches"
+                )
+            print(f"  {'total':<24} {total:8.3f} ms")
     print(f"wrote {out}")
 
 

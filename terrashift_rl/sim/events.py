@@ -10,6 +10,9 @@ import warp as wp
 
 from terrashift_rl.sim.physics import column_center
 from terrashift_rl.sim.types import Model
+from terrashift_rl.sim.wave import wavelet_frame
+
+wp.set_module_options({"enable_backward": False})  # nothing differentiates through it
 
 
 @wp.func
@@ -116,6 +119,7 @@ def reset_episodes(
     agent_angular_velocity: wp.array2d(dtype=float),
     agent_amplitude: wp.array2d(dtype=float),
     agent_sigma: wp.array2d(dtype=wp.vec2),
+    agent_frame: wp.array2d(dtype=wp.vec4),
     goal_cell: wp.array2d(dtype=wp.vec2i),
     active: wp.array2d(dtype=wp.int32),
     spawn_timer: wp.array2d(dtype=wp.int32),
@@ -144,6 +148,7 @@ def reset_episodes(
             uniform(rng, e, model.sigma_min, model.sigma_max),
             uniform(rng, e, model.sigma_min, model.sigma_max),
         )
+        agent_frame[e, k] = wavelet_frame(agent_angle[e, k], agent_sigma[e, k])
     # goals on distinct cells, at least two cells apart where the tries allow
     for i in range(model.num_goals):
         cell = random_spawn_cell(model, rng, e)

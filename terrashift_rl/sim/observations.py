@@ -12,6 +12,8 @@ from terrashift_rl.sim.events import assigned_goal
 from terrashift_rl.sim.physics import column_center, column_top, smooth_surface
 from terrashift_rl.sim.types import SHAPE_BOX, SHAPE_ELLIPSOID, Model
 
+wp.set_module_options({"enable_backward": False})  # nothing differentiates through it
+
 MISS = wp.constant(-1.0e6)
 
 
@@ -33,41 +35,53 @@ def cast_heightmap(
     """Casts one vertical ray per lattice point; the lattice spans the platform edge to edge.
 
     The highest hit of columns and active spheres is recorded; a miss reads as -1.
-    Launch dim: [num_envs, R, R] as (env, row = y, column = x).
+    Launch dim: [num_envs, R] as (env, column = x): a thread casts the R rays of one lattice
+    column, the columns first, then raises the rays that a sphere covers, visiting only the
+    spheres that reach over its lattice column (most reach over none).
     """
-    e, ry, rx = wp.tid()
+    e, rx = wp.tid()
     step = 2.0 * model.half_platform / float(model.heightmap_resolution - 1)
     x = -model.half_platform + float(rx) * step
-    y = -model.half_platform + float(ry) * step
-    z = float(MISS)
-
     g = model.grid_size
     ix = wp.clamp(int(wp.floor((x + model.half_platform) / model.cell_size)), 0, g - 1)
-    iy = wp.clamp(int(wp.floor((y + model.half_platform) / model.cell_size)), 0, g - 1)
-    if model.column_shape == SHAPE_BOX:
-        z = column_top(model, height, height, e, iy, ix, 1.0)
-    elif model.column_shape == SHAPE_ELLIPSOID:
-        a = model.column_half_width
-        dx = x - column_center(model, ix)
-        dy = y - column_center(model, iy)
-        rho2 = (dx * dx + dy * dy) / (a * a)
-        if rho2 <= 1.0 + 1.0e-5:  # rays on the platform edge graze the outer columns
-            top = column_top(model, height, height, e, iy, ix, 1.0)
-            z = top - model.column_half_height * (1.0 - wp.sqrt(wp.max(1.0 - rho2, 0.0)))
-    else:
-        z = smooth_surface(model, height, height, e, x, y, 1.0)[0]
+    dx = x - column_center(model, ix)
+    for ry in range(model.heightmap_resolution):
+        y = -model.half_platform + float(ry) * step
+        z = float(MISS)
+        iy = wp.clamp(int(wp.floor((y + model.half_platform) / model.cell_size)), 0, g - 1)
+        if model.column_shape == SHAPE_BOX:
+            z = column_top(model, height, height, e, iy, ix, 1.0)
+        elif model.column_shape == SHAPE_ELLIPSOID:
+            a = model.column_half_width
+            dy = y - column_center(model, iy)
+            rho2 = (dx * dx + dy * dy) / (a * a)
+            if rho2 <= 1.0 + 1.0e-5:  # rays on the platform edge graze the outer columns
+                top = column_top(model, height, height, e, iy, ix, 1.0)
+                z = top - model.column_half_height * (1.0 - wp.sqrt(wp.max(1.0 - rho2, 0.0)))
+        else:
+            z = smooth_surface(model, height, height, e, x, y, 1.0)[0]
+        if z == MISS:
+            heightmap[e, 0, ry, rx] = -1.0
+        else:
+            heightmap[e, 0, ry, rx] = normalised_height(model, z)
 
+    # normalised_height never decreases with the height, so the highest hit can be taken after
+    # normalising
     r = model.sphere_radius
+    last = model.heightmap_resolution - 1
     for j in range(model.num_objects):
         if active[e, j] != 0:
             p = position[e, j]
-            d2 = (p[0] - x) * (p[0] - x) + (p[1] - y) * (p[1] - y)
-            if d2 <= r * r:
-                z = wp.max(z, p[2] + wp.sqrt(r * r - d2))
-    if z == MISS:
-        heightmap[e, 0, ry, rx] = -1.0
-    else:
-        heightmap[e, 0, ry, rx] = normalised_height(model, z)
+            if (p[0] - x) * (p[0] - x) <= r * r:
+                # the rows within reach of the sphere, widened to whole rows
+                lo = int(wp.floor((p[1] - r + model.half_platform) / step))
+                hi = int(wp.ceil((p[1] + r + model.half_platform) / step))
+                for ry in range(wp.max(lo, 0), wp.min(hi, last) + 1):
+                    y = -model.half_platform + float(ry) * step
+                    d2 = (p[0] - x) * (p[0] - x) + (p[1] - y) * (p[1] - y)
+                    if d2 <= r * r:
+                        top = normalised_height(model, p[2] + wp.sqrt(r * r - d2))
+                        heightmap[e, 0, ry, rx] = wp.max(heightmap[e, 0, ry, rx], top)
 
 
 @wp.kernel
@@ -93,47 +107,48 @@ def gather_features(
     Objects: [x, y, z, goal x, goal y, goal z, v_x, v_y, v_z]; x and y over the half platform,
     z as the heightmap, velocity clipped to +-max_object_speed and divided by it; zeros where
     the slot is inactive. Agents: [x, y, theta, A, sigma_x, sigma_y, v_x, v_y, omega], each
-    mapped from its range to [-1, 1]. Launch dim: [num_envs].
+    mapped from its range to [-1, 1]. Launch dim: [num_envs, max(M, K)]: thread (e, i) writes
+    object slot i and agent i of environment e, those that exist.
     """
-    e = wp.tid()
+    e, i = wp.tid()
     half = model.half_platform
     vmax = model.max_object_speed
-    for j in range(model.num_objects):
-        on = active[e, j] != 0
-        object_mask[e, j] = on
+    if i < model.num_objects:
+        on = active[e, i] != 0
+        object_mask[e, i] = on
         if on:
-            p = position[e, j]
-            goal = assigned_goal(model, height, goal_cell, e, j)
-            v = velocity[e, j]
-            object_features[e, j, 0] = p[0] / half
-            object_features[e, j, 1] = p[1] / half
-            object_features[e, j, 2] = normalised_height(model, p[2])
-            object_features[e, j, 3] = goal[0] / half
-            object_features[e, j, 4] = goal[1] / half
-            object_features[e, j, 5] = normalised_height(model, goal[2])
-            object_features[e, j, 6] = wp.clamp(v[0], -vmax, vmax) / vmax
-            object_features[e, j, 7] = wp.clamp(v[1], -vmax, vmax) / vmax
-            object_features[e, j, 8] = wp.clamp(v[2], -vmax, vmax) / vmax
+            p = position[e, i]
+            goal = assigned_goal(model, height, goal_cell, e, i)
+            v = velocity[e, i]
+            object_features[e, i, 0] = p[0] / half
+            object_features[e, i, 1] = p[1] / half
+            object_features[e, i, 2] = normalised_height(model, p[2])
+            object_features[e, i, 3] = goal[0] / half
+            object_features[e, i, 4] = goal[1] / half
+            object_features[e, i, 5] = normalised_height(model, goal[2])
+            object_features[e, i, 6] = wp.clamp(v[0], -vmax, vmax) / vmax
+            object_features[e, i, 7] = wp.clamp(v[1], -vmax, vmax) / vmax
+            object_features[e, i, 8] = wp.clamp(v[2], -vmax, vmax) / vmax
         else:
             for f in range(9):
-                object_features[e, j, f] = 0.0
+                object_features[e, i, f] = 0.0
     g = float(model.grid_size)
     srange = model.sigma_max - model.sigma_min
-    for k in range(model.num_agents):
-        c = agent_position[e, k]
-        u = agent_velocity[e, k]
-        s = agent_sigma[e, k]
-        agent_features[e, k, 0] = 2.0 * c[0] / g - 1.0
-        agent_features[e, k, 1] = 2.0 * c[1] / g - 1.0
-        agent_features[e, k, 2] = agent_angle[e, k] / 3.141592653589793 - 1.0
-        agent_features[e, k, 3] = agent_amplitude[e, k] / model.max_amplitude
+    if i < model.num_agents:
+        c = agent_position[e, i]
+        u = agent_velocity[e, i]
+        s = agent_sigma[e, i]
+        agent_features[e, i, 0] = 2.0 * c[0] / g - 1.0
+        agent_features[e, i, 1] = 2.0 * c[1] / g - 1.0
+        agent_features[e, i, 2] = agent_angle[e, i] / 3.141592653589793 - 1.0
+        agent_features[e, i, 3] = agent_amplitude[e, i] / model.max_amplitude
         sx = float(0.0)
         sy = float(0.0)
         if srange > 0.0:
             sx = 2.0 * (s[0] - model.sigma_min) / srange - 1.0
             sy = 2.0 * (s[1] - model.sigma_min) / srange - 1.0
-        agent_features[e, k, 4] = sx
-        agent_features[e, k, 5] = sy
-        agent_features[e, k, 6] = u[0] / model.max_velocity
-        agent_features[e, k, 7] = u[1] / model.max_velocity
-        agent_features[e, k, 8] = agent_angular_velocity[e, k] / model.max_angular_velocity
+        agent_features[e, i, 4] = sx
+        agent_features[e, i, 5] = sy
+        agent_features[e, i, 6] = u[0] / model.max_velocity
+        agent_features[e, i, 7] = u[1] / model.max_velocity
+        agent_features[e, i, 8] = agent_angular_velocity[e, i] / model.max_angular_velocity

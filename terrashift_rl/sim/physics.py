@@ -24,6 +24,8 @@ import warp as wp
 
 from terrashift_rl.sim.types import SHAPE_BOX, SHAPE_ELLIPSOID, Model
 
+wp.set_module_options({"enable_backward": False})  # nothing differentiates through it
+
 
 @wp.func
 def column_top(
@@ -435,8 +437,8 @@ def combined_velocity_change(model: Model, impulses: ColumnImpulses) -> wp.spati
     return wp.spatial_vector(dv[0], dv[1], dv[2], dw[0], dw[1], dw[2])
 
 
-@wp.kernel
-def substep(
+@wp.func
+def advance_sphere(
     model: Model,
     frac: float,
     height_prev: wp.array3d(dtype=float),
@@ -448,13 +450,17 @@ def substep(
     position_out: wp.array2d(dtype=wp.vec3),
     velocity_out: wp.array2d(dtype=wp.vec3),
     angular_velocity_out: wp.array2d(dtype=wp.vec3),
+    e: int,
+    j: int,
 ):
-    """Advances every sphere by one substep. Launch dim: [num_envs, M].
+    """Advances sphere ``j`` of environment ``e`` by one substep, from the ``_in`` state of
+    every sphere to its own ``_out`` state.
 
-    ``frac`` is the fraction of the tick reached in the middle of this substep; column tops
-    are interpolated to it.
+    ``frac`` is the fraction of the tick reached in the middle of this substep, (s + 1/2) /
+    substeps; column tops are interpolated to it. A contact's impulse over the substep is
+    then that of the columns' mean position over it, so a column that starts or stops with
+    the tick is not felt a whole substep early or late.
     """
-    e, j = wp.tid()
     p = position_in[e, j]
     v = velocity_in[e, j]
     w = angular_velocity_in[e, j]
@@ -506,8 +512,22 @@ def substep(
         k0 = int(wp.floor((p[1] - r + half) / model.cell_size))
         k1 = int(wp.floor((p[1] + r + half) / model.cell_size))
         if i1 >= 0 and i0 < g and k1 >= 0 and k0 < g:
-            for iy in range(wp.max(k0, 0), wp.min(k1, g - 1) + 1):
-                for ix in range(wp.max(i0, 0), wp.min(i1, g - 1) + 1):
+            # The columns under the sphere are visited row by row, as nested loops would, but
+            # the exact contact, the costly part, has a loop of its own whose every pass takes
+            # the next column that the cheap test keeps: the threads of a GPU warp then share
+            # as many passes as the most such columns any one of them has, not one at every
+            # column where any of them needs it.
+            i0 = wp.max(i0, 0)
+            i1 = wp.min(i1, g - 1)
+            k1 = wp.min(k1, g - 1)
+            ix = i0
+            iy = wp.max(k0, 0)
+            while iy <= k1:
+                found = int(0)
+                column_x = int(0)
+                column_y = int(0)
+                top = float(0.0)
+                while found == 0 and iy <= k1:
                     top = column_top(model, height_prev, height, e, iy, ix, frac)
                     cx = column_center(model, ix)
                     cy = column_center(model, iy)
@@ -518,27 +538,37 @@ def substep(
                     gx = wp.max(wp.abs(p[0] - cx) - a, 0.0)
                     gy = wp.max(wp.abs(p[1] - cy) - a, 0.0)
                     reach = r * r - gx * gx - gy * gy
-                    if reach <= 0.0 or top < p[2] - wp.sqrt(reach):
-                        continue
-                    nd = wp.vec4()
-                    if model.column_shape == SHAPE_BOX:
-                        nd = box_contact(model, p, cx, cy, top)
-                    else:
-                        nd = ellipsoid_contact(model, p, cx, cy, top)
-                    overlap = r - nd[3]
-                    if overlap > 0.0:
-                        surface_velocity = wp.vec3(
-                            0.0, 0.0, column_speed(model, height_prev, height, e, iy, ix)
-                        )
-                        impulses = add_column_contact(
-                            model,
-                            impulses,
-                            v,
-                            w,
-                            wp.vec3(nd[0], nd[1], nd[2]),
-                            overlap,
-                            surface_velocity,
-                        )
+                    if not (reach <= 0.0 or top < p[2] - wp.sqrt(reach)):
+                        found = 1
+                        column_x = ix
+                        column_y = iy
+                    ix += 1
+                    if ix > i1:
+                        ix = i0
+                        iy += 1
+                if found == 0:
+                    break
+                cx = column_center(model, column_x)
+                cy = column_center(model, column_y)
+                nd = wp.vec4()
+                if model.column_shape == SHAPE_BOX:
+                    nd = box_contact(model, p, cx, cy, top)
+                else:
+                    nd = ellipsoid_contact(model, p, cx, cy, top)
+                overlap = r - nd[3]
+                if overlap > 0.0:
+                    surface_velocity = wp.vec3(
+                        0.0, 0.0, column_speed(model, height_prev, height, e, column_y, column_x)
+                    )
+                    impulses = add_column_contact(
+                        model,
+                        impulses,
+                        v,
+                        w,
+                        wp.vec3(nd[0], nd[1], nd[2]),
+                        overlap,
+                        surface_velocity,
+                    )
     elif wp.abs(p[0]) < half + r and wp.abs(p[1]) < half + r:
         sc = smooth_contact(model, height_prev, height, e, p, frac)
         overlap = r - sc[3]
@@ -561,3 +591,88 @@ def substep(
     position_out[e, j] = p + v * dt
     velocity_out[e, j] = v
     angular_velocity_out[e, j] = w
+
+
+CONTACT_MAX_REGISTERS = 128
+"""Registers a GPU thread of the sphere kernels may use. Unbounded they take 180-250, so that
+a multiprocessor (64 K registers) holds 8 warps of them; at 128 it holds 16, twice the threads
+to hide latency with, for a few spills to the L1 cache."""
+
+
+@wp.kernel(cuda_max_registers=CONTACT_MAX_REGISTERS)
+def substep(
+    model: Model,
+    frac: float,
+    height_prev: wp.array3d(dtype=float),
+    height: wp.array3d(dtype=float),
+    active: wp.array2d(dtype=wp.int32),
+    position_in: wp.array2d(dtype=wp.vec3),
+    velocity_in: wp.array2d(dtype=wp.vec3),
+    angular_velocity_in: wp.array2d(dtype=wp.vec3),
+    position_out: wp.array2d(dtype=wp.vec3),
+    velocity_out: wp.array2d(dtype=wp.vec3),
+    angular_velocity_out: wp.array2d(dtype=wp.vec3),
+):
+    """Advances every sphere by one substep (:func:`advance_sphere`). Launch dim:
+    [num_envs, M]."""
+    e, j = wp.tid()
+    advance_sphere(
+        model,
+        frac,
+        height_prev,
+        height,
+        active,
+        position_in,
+        velocity_in,
+        angular_velocity_in,
+        position_out,
+        velocity_out,
+        angular_velocity_out,
+        e,
+        j,
+    )
+
+
+@wp.kernel(cuda_max_registers=CONTACT_MAX_REGISTERS)
+def tick_substeps(
+    model: Model,
+    height_prev: wp.array3d(dtype=float),
+    height: wp.array3d(dtype=float),
+    active: wp.array2d(dtype=wp.int32),
+    position: wp.array2d(dtype=wp.vec3),
+    velocity: wp.array2d(dtype=wp.vec3),
+    angular_velocity: wp.array2d(dtype=wp.vec3),
+    position_next: wp.array2d(dtype=wp.vec3),
+    velocity_next: wp.array2d(dtype=wp.vec3),
+    angular_velocity_next: wp.array2d(dtype=wp.vec3),
+):
+    """Advances every sphere of an environment through all substeps of one tick, as many
+    launches of :func:`substep` would. Launch dim: [num_envs].
+
+    One thread per environment, so that a substep can follow the previous one without a
+    launch in between: every sphere's next state goes to the ``_next`` arrays, and only once
+    all of them are there do they become the current state.
+    """
+    e = wp.tid()
+    for s in range(model.substeps):
+        frac = (float(s) + 0.5) / float(model.substeps)
+        for j in range(model.num_objects):
+            advance_sphere(
+                model,
+                frac,
+                height_prev,
+                height,
+                active,
+                position,
+                velocity,
+                angular_velocity,
+                position_next,
+                velocity_next,
+                angular_velocity_next,
+                e,
+                j,
+            )
+        for j in range(model.num_objects):
+            position[e, j] = position_next[e, j]
+            velocity[e, j] = velocity_next[e, j]
+            angular_velocity[e, j] = angular_velocity_next[e, j]

@@ -17,10 +17,16 @@ from terrashift_rl.sim import events, observations, physics, wave
 from terrashift_rl.sim.config import TerraShiftConfig
 from terrashift_rl.sim.types import ACTION_DIM, Data, build_model
 
+wp.set_module_options({"enable_backward": False})  # nothing differentiates through it
+
 _KERNEL_MODULES = (wave, physics, events, observations)
 _INT32_MAX = 2**31 - 1
 _RENAMED_ARRAYS = {"env_mask": "reset_mask"}
 """Earlier name -> name of the data arrays renamed since checkpoints were first written."""
+_FUSED_ENVS_PER_SM = 256
+"""Environments per GPU multiprocessor from which the substeps of a tick are fused by default;
+with fewer, a thread per environment leaves much of the GPU idle, which a thread per sphere
+keeps busy."""
 
 
 @wp.kernel
@@ -39,6 +45,10 @@ class Simulator:
         seed: seed of the per-environment random streams.
         cuda_graph: on CUDA, replay the step and reset as captured graphs (False launches
             every kernel eagerly, for debugging).
+        fuse_substeps: advance the spheres through a tick's substeps in one launch, a thread
+            per environment (True), or launch each substep, a thread per sphere (False); both
+            compute the same. None fuses on the CPU, and on a GPU from 256 environments per
+            multiprocessor.
 
     Example:
         >>> import torch
@@ -57,6 +67,7 @@ class Simulator:
         device: str | torch.device = "cpu",
         seed: int = 0,
         cuda_graph: bool = True,
+        fuse_substeps: bool | None = None,
     ):
         if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
@@ -69,6 +80,12 @@ class Simulator:
         if self.torch_device.type == "cuda" and not torch.cuda.is_available():
             raise ValueError(f"device {device!r} requested but CUDA is not available")
         self.device = wp.get_device(str(self.torch_device))
+        if fuse_substeps is None:
+            fuse_substeps = self.device.is_cpu or (
+                num_envs >= _FUSED_ENVS_PER_SM * self.device.sm_count
+            )
+        self.fuse_substeps = fuse_substeps
+        """Whether a tick's substeps run as one launch (see the argument)."""
         self.model = build_model(self.config)
         self.data = Data(self.config, num_envs=num_envs, device=self.device)
         self._views: dict[str, torch.Tensor] = {}
@@ -97,16 +114,18 @@ class Simulator:
         return self._views[name]
 
     def state_dict(self) -> dict[str, torch.Tensor]:
-        """Copies of every data array: the whole state of every environment."""
+        """Copies of every data array but the scratch ones: the whole state of every
+        environment."""
         return {
             name: self.view(name).clone()
             for name, value in vars(self.data).items()
-            if isinstance(value, wp.array)
+            if isinstance(value, wp.array) and name not in Data.SCRATCH
         }
 
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
-        """Restores a :meth:`state_dict`; shapes must match this simulator's. Arrays saved under
-        an earlier name (``_RENAMED_ARRAYS``) load into the array that has it now."""
+        """Restores a :meth:`state_dict` (one that holds the scratch arrays too loads as
+        well); shapes must match this simulator's. Arrays saved under an earlier name
+        (``_RENAMED_ARRAYS``) load into the array that has it now."""
         state = {_RENAMED_ARRAYS.get(name, name): value for name, value in state.items()}
         missing = sorted(set(self.state_dict()) - set(state))
         if missing:
@@ -190,6 +209,7 @@ class Simulator:
                     d.agent_angular_velocity,
                     d.agent_amplitude,
                     d.agent_sigma,
+                    d.agent_frame,
                 ],
             )
             self._launch_heights(masked=False, keep_velocity=True)
@@ -218,6 +238,7 @@ class Simulator:
                 d.agent_angular_velocity,
                 d.agent_amplitude,
                 d.agent_sigma,
+                d.agent_frame,
                 d.goal_cell,
                 d.sphere_active,
                 d.spawn_timer,
@@ -262,9 +283,8 @@ class Simulator:
                 int(masked),
                 int(keep_velocity),
                 d.agent_position,
-                d.agent_angle,
                 d.agent_amplitude,
-                d.agent_sigma,
+                d.agent_frame,
                 d.column_height_prev,
                 d.column_height,
             ],
@@ -274,24 +294,19 @@ class Simulator:
         d, m = self.data, self.model
         current = (d.sphere_position, d.sphere_velocity, d.sphere_angular_velocity)
         scratch = (d.sphere_position_next, d.sphere_velocity_next, d.sphere_angular_velocity_next)
+        fields = (d.column_height_prev, d.column_height, d.sphere_active)
+        if self.fuse_substeps:
+            wp.launch(
+                physics.tick_substeps, dim=self.num_envs, inputs=[m, *fields, *current, *scratch]
+            )
+            return
         substeps = self.config.substeps
         for s in range(substeps):
             src, dst = (current, scratch) if s % 2 == 0 else (scratch, current)
-            # the columns are placed where they are in the middle of the substep: a contact's
-            # impulse over the substep is that of their mean position over it, so a column that
-            # starts or stops with the tick is not felt a whole substep early or late
             wp.launch(
                 physics.substep,
                 dim=(self.num_envs, self.config.num_objects),
-                inputs=[
-                    m,
-                    (s + 0.5) / substeps,
-                    d.column_height_prev,
-                    d.column_height,
-                    d.sphere_active,
-                    *src,
-                    *dst,
-                ],
+                inputs=[m, (s + 0.5) / substeps, *fields, *src, *dst],
             )
         if substeps % 2 == 1:
             for dst, src in zip(current, scratch, strict=True):
@@ -324,12 +339,12 @@ class Simulator:
         n, r = self.num_envs, self.config.heightmap_resolution
         wp.launch(
             observations.cast_heightmap,
-            dim=(n, r, r),
+            dim=(n, r),
             inputs=[m, d.column_height, d.sphere_active, d.sphere_position, d.heightmap],
         )
         wp.launch(
             observations.gather_features,
-            dim=n,
+            dim=(n, max(self.config.num_objects, self.config.num_agents)),
             inputs=[
                 m,
                 d.column_height,

@@ -68,6 +68,7 @@ class Model:
     gravity: float
 
     tick_dt: float
+    substeps: int
     substep_dt: float
 
     goal_radius: float
@@ -211,6 +212,7 @@ def build_model(config: TerraShiftConfig) -> Model:
     m.gravity = config.gravity
 
     m.tick_dt = config.tick_dt
+    m.substeps = config.substeps
     m.substep_dt = config.substep_dt
 
     m.goal_radius = config.goal_radius
@@ -244,11 +246,21 @@ def build_model(config: TerraShiftConfig) -> Model:
 class Data:
     """Per-environment state and outputs; every array's leading dimension is the environment.
 
+    The arrays named in :attr:`SCRATCH` are not state: every step and reset writes them before
+    it reads them.
+
     Args:
         config: the scene's config.
         num_envs: number of environments.
         device: Warp device.
     """
+
+    SCRATCH = (
+        "agent_frame",
+        "sphere_position_next",
+        "sphere_velocity_next",
+        "sphere_angular_velocity_next",
+    )
 
     def __init__(self, config: TerraShiftConfig, *, num_envs: int, device: wp.context.Device):
         n, k, m = num_envs, config.num_agents, config.num_objects
@@ -271,6 +283,10 @@ class Data:
         """Wavelet amplitudes [m], shape [num_envs, K]."""
         self.agent_sigma = zeros((n, k), wp.vec2)
         """Wavelet widths sigma_x, sigma_y [cells], shape [num_envs, K], vec2."""
+        self.agent_frame = zeros((n, k), wp.vec4)
+        """What the height sum needs of each wavelet's angle and widths, (cos theta, sin theta,
+        1 / sigma_x^2, 1 / sigma_y^2) [1, 1, 1/cells^2, 1/cells^2]: derived once per tick, not
+        at every column. Shape [num_envs, K], vec4."""
         self.action = zeros((n, k, ACTION_DIM))
         """Current per-agent actions in [-1, 1], shape [num_envs, K, 6]."""
         # columns

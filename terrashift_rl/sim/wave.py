@@ -14,13 +14,25 @@ import warp as wp
 
 from terrashift_rl.sim.types import ACTION_TARGET, Model
 
+wp.set_module_options({"enable_backward": False})  # nothing differentiates through it
+
 TWO_PI = wp.constant(6.283185307179586)
 
 
 @wp.func
-def wrap_offset(d: float, period: float) -> float:
-    """Maps an offset to [-period / 2, period / 2)."""
-    return d - period * wp.floor(d / period + 0.5)
+def wrap_offset(d: float, period: float, inverse_period: float) -> float:
+    """Maps an offset to [-period / 2, period / 2) (``inverse_period`` is 1 / period: a
+    product costs less than a quotient)."""
+    return d - period * wp.floor(d * inverse_period + 0.5)
+
+
+@wp.func
+def wavelet_frame(angle: float, sigma: wp.vec2) -> wp.vec4:
+    """What the height sum needs of a wavelet's angle and widths: (cos theta, sin theta,
+    1 / sigma_x^2, 1 / sigma_y^2)."""
+    return wp.vec4(
+        wp.cos(angle), wp.sin(angle), 1.0 / (sigma[0] * sigma[0]), 1.0 / (sigma[1] * sigma[1])
+    )
 
 
 @wp.kernel
@@ -33,8 +45,10 @@ def update_agents(
     angular_velocity: wp.array2d(dtype=float),
     amplitude: wp.array2d(dtype=float),
     sigma: wp.array2d(dtype=wp.vec2),
+    frame: wp.array2d(dtype=wp.vec4),
 ):
-    """Applies one physics tick of action deltas to every wavelet. Launch dim: [num_envs, K]."""
+    """Applies one physics tick of action deltas to every wavelet and derives its
+    :func:`wavelet_frame`. Launch dim: [num_envs, K]."""
     e, k = wp.tid()
     step = model.wave_step
     vmax = model.max_velocity
@@ -101,6 +115,7 @@ def update_agents(
     angular_velocity[e, k] = w
     amplitude[e, k] = amp
     sigma[e, k] = s
+    frame[e, k] = wavelet_frame(theta, s)
 
 
 @wp.kernel
@@ -110,9 +125,8 @@ def compute_heights(
     use_mask: int,
     keep_velocity: int,
     position: wp.array2d(dtype=wp.vec2),
-    angle: wp.array2d(dtype=float),
     amplitude: wp.array2d(dtype=float),
-    sigma: wp.array2d(dtype=wp.vec2),
+    frame: wp.array2d(dtype=wp.vec4),
     height_prev: wp.array3d(dtype=float),
     height: wp.array3d(dtype=float),
 ):
@@ -125,23 +139,20 @@ def compute_heights(
     if use_mask != 0 and not reset_mask[e]:
         return
     g = float(model.grid_size)
+    inverse_g = 1.0 / g
     total = float(0.0)
     for k in range(model.num_agents):
         p = position[e, k]
         dx = float(ix) - p[0]
         dy = float(iy) - p[1]
         if model.wrap_edges != 0:
-            dx = wrap_offset(dx, g)
-            dy = wrap_offset(dy, g)
-        c = wp.cos(angle[e, k])
-        s = wp.sin(angle[e, k])
+            dx = wrap_offset(dx, g, inverse_g)
+            dy = wrap_offset(dy, g, inverse_g)
+        f = frame[e, k]
         # rotate the offset by -theta into the wavelet's frame
-        xr = c * dx + s * dy
-        yr = -s * dx + c * dy
-        sg = sigma[e, k]
-        total += amplitude[e, k] * wp.exp(
-            -0.5 * (xr * xr / (sg[0] * sg[0]) + yr * yr / (sg[1] * sg[1]))
-        )
+        xr = f[0] * dx + f[1] * dy
+        yr = -f[1] * dx + f[0] * dy
+        total += amplitude[e, k] * wp.exp(-0.5 * (xr * xr * f[2] + yr * yr * f[3]))
     hmax = model.max_column_height
     h = wp.clamp(total, -hmax, hmax)
     if keep_velocity != 0:

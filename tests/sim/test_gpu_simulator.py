@@ -9,14 +9,22 @@ from terrashift_rl.sim import Simulator, TerraShiftConfig
 pytestmark = pytest.mark.gpu
 
 
+@pytest.mark.parametrize("fuse_substeps", [True, False], ids=["fused", "per_substep"])
 @pytest.mark.parametrize("shape", ["ellipsoid", "box", "smooth"])
-def test_cuda_graph_replay_matches_eager_launches(shape):
+def test_cuda_graph_replay_matches_eager_launches(shape, fuse_substeps):
     config = TerraShiftConfig(column_shape=shape)
     n, steps = 64, 20
     generator = torch.Generator(device="cuda").manual_seed(0)
     actions = torch.rand(steps, n, 8, 6, device="cuda", generator=generator) * 2 - 1
     sims = [
-        Simulator(config, num_envs=n, device="cuda", seed=3, cuda_graph=graph)
+        Simulator(
+            config,
+            num_envs=n,
+            device="cuda",
+            seed=3,
+            cuda_graph=graph,
+            fuse_substeps=fuse_substeps,
+        )
         for graph in (True, False)
     ]
     for sim in sims:
