@@ -23,10 +23,6 @@ _KERNEL_MODULES = (wave, physics, events, observations)
 _INT32_MAX = 2**31 - 1
 _RENAMED_ARRAYS = {"env_mask": "reset_mask"}
 """Earlier name -> name of the data arrays renamed since checkpoints were first written."""
-_FUSED_ENVS_PER_SM = 256
-"""Environments per GPU multiprocessor from which the substeps of a tick are fused by default;
-with fewer, a thread per environment leaves much of the GPU idle, which a thread per sphere
-keeps busy."""
 
 
 @wp.kernel
@@ -47,8 +43,8 @@ class Simulator:
             every kernel eagerly, for debugging).
         fuse_substeps: advance the spheres through a tick's substeps in one launch, a thread
             per environment (True), or launch each substep, a thread per sphere (False); both
-            compute the same. None fuses on the CPU, and on a GPU from 256 environments per
-            multiprocessor.
+            compute the same. None fuses on the CPU only: on an H100 a launch per substep was
+            the faster at every number of environments measured.
 
     Example:
         >>> import torch
@@ -80,10 +76,8 @@ class Simulator:
         if self.torch_device.type == "cuda" and not torch.cuda.is_available():
             raise ValueError(f"device {device!r} requested but CUDA is not available")
         self.device = wp.get_device(str(self.torch_device))
-        if fuse_substeps is None:
-            fuse_substeps = self.device.is_cpu or (
-                num_envs >= _FUSED_ENVS_PER_SM * self.device.sm_count
-            )
+        if fuse_substeps is None:  # the faster of the two on each (docs/benchmarks.md)
+            fuse_substeps = self.device.is_cpu
         self.fuse_substeps = fuse_substeps
         """Whether a tick's substeps run as one launch (see the argument)."""
         self.model = build_model(self.config)
