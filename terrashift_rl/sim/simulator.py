@@ -43,8 +43,8 @@ class Simulator:
             every kernel eagerly, for debugging).
         fuse_substeps: advance the spheres through a tick's substeps in one launch, a thread
             per environment (True), or launch each substep, a thread per sphere (False); both
-            compute the same. None fuses on the CPU only: on an H100 a launch per substep was
-            the faster at every number of environments measured.
+            compute the same. None fuses on the CPU only: on a GPU a launch per substep was
+            the faster at every number of environments measured (docs/benchmarks.md).
 
     Example:
         >>> import torch
