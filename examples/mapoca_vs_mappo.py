@@ -179,9 +179,16 @@ def make_actor(env: EnvBase, *, width: int, depth: int) -> ProbabilisticActor:
 def make_mapoca_loss(
     env: EnvBase, actor: ProbabilisticActor, *, width: int, depth: int, **options
 ) -> MAPOCALoss:
-    """MAPOCALoss with the generic critics; its default keys are VMAS's."""
+    """MAPOCALoss with the generic critics; its default keys are VMAS's.
+
+    ``depth`` counts the critics' hidden layers as for MAPPO's MLP critic: each generic critic
+    has an MLP before the attention and one after it, and they get ``depth // 2`` hidden layers
+    each (at least one): critics as deep as MAPPO's, not twice as deep (docs/results.md,
+    "MAPOCALoss on VMAS", says what a deeper baseline does to the start of training).
+    """
     observation_dim = env.full_observation_spec[OBSERVATION].shape[-1]
     action_dim = env.full_action_spec[ACTION].shape[-1]
+    depth = max(1, depth // 2)
     value = CentralValue(observation_dim, width=width, depth=depth)
     baseline = CounterfactualBaseline(observation_dim, action_dim, width=width, depth=depth)
     return MAPOCALoss(actor, value, baseline, **options)
@@ -271,7 +278,7 @@ def run(method: str, *, env_name: str, seed: int, args: argparse.Namespace) -> l
         env,
         actor,
         width=args.width,
-        depth=args.depth,
+        depth=args.critic_depth,
         clip_epsilon=0.2,
         entropy_coeff=args.entropy_coeff,
     )
@@ -303,7 +310,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--lmbda", type=float, default=0.9)
     parser.add_argument("--entropy-coeff", type=float, default=0.0)
     parser.add_argument("--width", type=int, default=64)
-    parser.add_argument("--depth", type=int, default=2)
+    parser.add_argument("--depth", type=int, default=2, help="hidden layers of the actor")
+    parser.add_argument(
+        "--critic-depth",
+        type=int,
+        default=2,
+        help="hidden layers of MAPPO's critic; MA-POCA's critics get half as many before and "
+        "half after their attention",
+    )
     parser.add_argument("--final-iterations", type=int, default=5)
     parser.add_argument("--json", default=None, help="where to write the curves and the table")
     return parser.parse_args(argv)

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 from tensordict import TensorDict
+from torch import nn
 from torchrl.envs.utils import check_env_specs
 
 EXAMPLE = Path(__file__).parents[2] / "examples" / "mapoca_vs_mappo.py"
@@ -69,6 +70,23 @@ def test_team_navigation_truncates_episodes_and_resets_only_those_asked(env):
 def test_unknown_environment_is_refused(example):
     with pytest.raises(ValueError, match="team_navigation or vmas:<scenario>"):
         example.make_env("navigation", num_envs=2, episode_steps=3, seed=0)
+
+
+def test_mapoca_critics_split_the_hidden_layers_of_mappos_critic_around_the_attention(example):
+    env = example.TeamNavigationEnv(2, num_agents=3)
+    actor = example.make_actor(env, width=8, depth=2)
+
+    def hidden_layers(mlp: nn.Module) -> int:
+        return sum(isinstance(layer, nn.Linear) for layer in mlp.modules()) - 1
+
+    mappo_critic = example.make_mappo_loss(env, actor, width=8, depth=2).critic_network
+    assert hidden_layers(mappo_critic) == 2
+    for depth, each in ((2, 1), (4, 2), (1, 1)):
+        loss = example.make_mapoca_loss(env, actor, width=8, depth=depth)
+        value, baseline = loss.value_network.module, loss.baseline_network.module
+        assert hidden_layers(value.encoder) == hidden_layers(value.mlp) == each
+        assert hidden_layers(baseline.own_state) == hidden_layers(baseline.mlp) == each
+        assert hidden_layers(baseline.other_state_action) == each
 
 
 def test_example_trains_both_losses_and_writes_the_table(tmp_path):
