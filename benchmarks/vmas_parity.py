@@ -70,6 +70,8 @@ def summarise(curves: dict[str, dict[int, list[float]]], final_iterations: int) 
     """Per method: per-seed scores and their mean and sd; MAPOCA / MAPPO of the means."""
     table: dict[str, dict] = {}
     for method, runs in curves.items():
+        if not runs:
+            continue
         per_seed = {seed: scores(curve, final_iterations) for seed, curve in runs.items()}
         row: dict = {"seeds": sorted(per_seed)}
         for measure in ("final", "auc"):
@@ -98,9 +100,10 @@ TRAINING_ARGS = (
 """The example's options that shape a run: outputs merged together must agree on them."""
 
 
-def merge(results: list[dict], final_iterations: int) -> dict:
+def merge(results: list[dict], final_iterations: int, seeds: list[int] | None = None) -> dict:
     """One output from several of the same settings (say, one per method, run side by side):
-    the curves together, the table recomputed, every source's command or settings kept."""
+    the curves together (of ``seeds`` only, if given), the table recomputed, every source's
+    command or settings kept."""
     # the example's option --critic-depth was 2 (its default) where a file predates it
     settings = [{"critic_depth": 2, **result["args"]} for result in results]
     for key in TRAINING_ARGS:
@@ -111,6 +114,8 @@ def merge(results: list[dict], final_iterations: int) -> dict:
     for result in results:
         for method, runs in result["curves"].items():
             for seed, curve in runs.items():
+                if seeds is not None and int(seed) not in seeds:
+                    continue
                 if int(seed) in curves.get(method, {}):
                     raise ValueError(f"{method} seed {seed} is in more than one output")
                 curves.setdefault(method, {})[int(seed)] = [round(value, 4) for value in curve]
@@ -164,7 +169,9 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenario", default="balance", help="a VMAS scenario")
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3, 4, 5])
+    parser.add_argument(
+        "--seeds", nargs="+", type=int, default=[0, 1, 2, 3, 4, 5], help="also of --merge"
+    )
     parser.add_argument("--workers", type=int, default=1, help="runs at a time")
     parser.add_argument("--final-iterations", type=int, default=10)
     parser.add_argument("--output", type=Path, default=None)
@@ -187,7 +194,8 @@ def main(argv: list[str] | None = None) -> None:
         print(markdown([json.loads(path.read_text()) for path in args.table]))
         return
     if args.merge is not None:
-        result = merge([json.loads(path.read_text()) for path in args.merge], args.final_iterations)
+        outputs = [json.loads(path.read_text()) for path in args.merge]
+        result = merge(outputs, args.final_iterations, args.seeds)
         print(markdown([result]))
         if args.output is not None:
             write_results(args.output, result)
@@ -199,6 +207,25 @@ def main(argv: list[str] | None = None) -> None:
     example_args = _example().parse_args(example_argv)
     curves: dict[str, dict[int, list[float]]] = {method: {} for method in args.methods}
     seconds: dict[str, list[float]] = {method: [] for method in args.methods}
+
+    def result() -> dict:
+        return {
+            "date": datetime.date.today().isoformat(),
+            "device": device_name(torch.device("cpu")),
+            "command": "python benchmarks/vmas_parity.py "
+            + " ".join(sys.argv[1:] if argv is None else argv),
+            "args": {key: getattr(example_args, key) for key in TRAINING_ARGS}
+            | {"final_iterations": args.final_iterations},
+            "auc": AUC,
+            "final": f"mean of the curve over the last {args.final_iterations} iterations",
+            "seconds_per_run": {m: statistics.mean(s) for m, s in seconds.items() if s},
+            "table": summarise(curves, args.final_iterations),
+            "curves": {
+                method: {seed: [round(value, 4) for value in curve] for seed, curve in runs.items()}
+                for method, runs in curves.items()
+            },
+        }
+
     jobs = [(method, seed) for seed in args.seeds for method in args.methods]
     with ProcessPoolExecutor(args.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
         futures = [pool.submit(_run, method, seed, example_argv) for method, seed in jobs]
@@ -207,26 +234,9 @@ def main(argv: list[str] | None = None) -> None:
             curves[method][seed] = curve
             seconds[method].append(elapsed)
             print(f"{method} seed {seed}: final {curve[-1]:+.4f}, {elapsed:.0f} s", flush=True)
-    table = summarise(curves, args.final_iterations)
-    result = {
-        "date": datetime.date.today().isoformat(),
-        "device": device_name(torch.device("cpu")),
-        "command": "python benchmarks/vmas_parity.py "
-        + " ".join(sys.argv[1:] if argv is None else argv),
-        "args": {key: getattr(example_args, key) for key in TRAINING_ARGS}
-        | {"final_iterations": args.final_iterations},
-        "auc": AUC,
-        "final": f"mean of the curve over the last {args.final_iterations} iterations",
-        "seconds_per_run": {m: statistics.mean(s) for m, s in seconds.items() if s},
-        "table": table,
-        "curves": {
-            method: {seed: [round(value, 4) for value in curve] for seed, curve in runs.items()}
-            for method, runs in curves.items()
-        },
-    }
-    print(markdown([result]))
-    if args.output is not None:
-        write_results(args.output, result)
+            if args.output is not None:  # after every run: one stopped part-way keeps its runs
+                write_results(args.output, result())
+    print(markdown([result()]))
 
 
 if __name__ == "__main__":
