@@ -183,8 +183,7 @@ def make_mapoca_loss(
 
     ``depth`` counts the critics' hidden layers as for MAPPO's MLP critic: each generic critic
     has an MLP before the attention and one after it, and they get ``depth // 2`` hidden layers
-    each (at least one): critics as deep as MAPPO's, not twice as deep (docs/results.md,
-    "MAPOCALoss on VMAS", says what a deeper baseline does to the start of training).
+    each (at least one): critics as deep as MAPPO's, not twice as deep.
     """
     observation_dim = env.full_observation_spec[OBSERVATION].shape[-1]
     action_dim = env.full_action_spec[ACTION].shape[-1]

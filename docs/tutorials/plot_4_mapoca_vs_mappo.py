@@ -66,8 +66,7 @@ print(inspect.getsource(example.make_actor))
 # does. Neither fixes the number of agents. Both are TensorDict modules whose default keys are
 # the loss's. ``depth`` is the number of hidden layers of each of their MLPs, the one before the
 # attention and the one after it: ``depth=1`` gives them the two hidden layers of MAPPO's critic
-# below. A baseline twice as deep fits the returns more slowly and made MA-POCA start slower
-# than MAPPO on VMAS's balance task.
+# below.
 from terrashift_rl.modules import CentralValue, CounterfactualBaseline  # noqa: E402
 
 value = CentralValue(observation_dim=4, width=64, depth=1)
