@@ -286,10 +286,10 @@ def test_without_cuda_auto_sizes_a_run_for_the_cpu_but_what_the_command_line_set
 @pytest.mark.slow
 @without_cuda
 def test_without_cuda_finetuning_builds_the_network_of_its_checkpoint(tmp_path):
-    # a checkpoint of another model than the CPU-sized run's model=small
+    # a checkpoint of another model than the CPU-sized run's model=small and the configured one
     pretrained = run(
         "mapoca_pretrain.py",
-        "model=medium",
+        "model=table1",
         "run.total_env_steps=1",
         "hydra.run.dir=a",
         cwd=tmp_path,
