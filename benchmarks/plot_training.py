@@ -6,9 +6,10 @@
 Each argument is a run summary (``compact_logs.py``'s JSON) or a ``scalars`` folder written by
 torchrl's CSVLogger (one ``<metric>.csv`` of ``step,value`` rows per metric). Draws one panel
 per metric against env-steps (by default reward per decision, success rate and throughput),
-with an optional reference line in the reward panel. A summary is labelled by its name, a
-recipe's own folder (``<run dir>/logs/<run name>/scalars``) by its run folder and the overrides
-Hydra recorded there, any other folder by its name.
+with an optional reference line in one panel (``--reference-metric``, the reward by default).
+A summary is labelled by its name, a recipe's own folder
+(``<run dir>/logs/<run name>/scalars``) by its run folder and the overrides Hydra recorded
+there, any other folder by its name.
 
     python benchmarks/plot_training.py <runs> --out curves.png \
         --metrics reward_per_decision out_of_bounds_per_episode entropy kl_approx
@@ -50,9 +51,10 @@ def main() -> None:
         "--reference",
         type=float,
         default=None,
-        help="a reward per decision to draw as a dashed line",
+        help="a value of --reference-metric to draw as a dashed line",
     )
     parser.add_argument("--reference-label", default="reference")
+    parser.add_argument("--reference-metric", default="reward_per_decision")
     parser.add_argument(
         "--metrics",
         nargs="+",
@@ -74,7 +76,7 @@ def main() -> None:
                 marker="." if len(steps) < 10 else None,
                 label=run_label(run),
             )
-        if metric == "reward_per_decision" and args.reference is not None:
+        if metric == args.reference_metric and args.reference is not None:
             ax.axhline(args.reference, linestyle="--", color="grey", label=args.reference_label)
         ax.set_title(TITLES.get(metric, metric))
         ax.set_xlabel("env-steps (millions)")

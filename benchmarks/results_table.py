@@ -10,7 +10,9 @@ them of the evaluation-mode metrics (``recipes/evaluate.py``'s ``evaluation`` fi
 last periodic evaluation the run logged, ``eval_*``), the policy's Beta mean first and its
 samples in parentheses where evaluated, with the env-steps and the training reward per decision
 over the last 8 iterations. ``--baselines`` adds the random, zero and heuristic rows of an
-``evaluate_baselines`` file.
+``evaluate_baselines`` file. ``--env-steps N`` compares runs of different lengths at one
+budget: each row then reads the periodic evaluation logged at N env-steps, and the training
+reward over the last 8 points logged up to N.
 """
 
 from __future__ import annotations
@@ -38,28 +40,44 @@ def spread(values: list[float], form: str) -> str:
     return f"{form.format(statistics.mean(values))} ± {deviation}"
 
 
-def scores(run: Path) -> dict[str, dict[str, float]]:
-    """Evaluation-mode metrics of a run per policy kind (``deterministic``, ``stochastic``)."""
+def scores(run: Path, at: int | None = None) -> dict[str, dict[str, float]]:
+    """Evaluation-mode metrics of a run per policy kind (``deterministic``, ``stochastic``):
+    its evaluation file's, else its last periodic evaluation, or the one at ``at`` env-steps."""
     evaluation = read_evaluations(run).get("evaluation")
-    if evaluation is not None:
+    if evaluation is not None and at is None:
         return {kind: evaluation[kind] for kind in ("deterministic", "stochastic")}
-    logged = {name: read_series(run, f"eval_{name}")[1] for name, _ in METRICS}
+    logged = {
+        name: dict(zip(*read_series(run, f"eval_{name}"), strict=True)) for name, _ in METRICS
+    }
     if not all(logged.values()):
         raise SystemExit(f"{run} holds no evaluation-mode score")
-    return {"deterministic": {name: values[-1] for name, values in logged.items()}}
+    if at is None:
+        return {"deterministic": {name: list(v.values())[-1] for name, v in logged.items()}}
+    if at not in logged["goal_fraction"]:
+        raise SystemExit(
+            f"{run} has no evaluation at {at} env-steps: {list(logged['goal_fraction'])}"
+        )
+    return {"deterministic": {name: values[at] for name, values in logged.items()}}
 
 
-def row(label: str, runs: list[Path]) -> list[str]:
-    per_run = [scores(run) for run in runs]
+def row(label: str, runs: list[Path], at: int | None = None) -> list[str]:
+    per_run = [scores(run, at) for run in runs]
     cells = [label, str(len(runs))]
     steps = [read_series(run, "reward_per_decision")[0][-1] / 1e6 for run in runs]
-    cells.append(f"{statistics.mean(steps):.1f} M")
+    cells.append(f"{statistics.mean(steps) if at is None else at / 1e6:.1f} M")
     for name, form in METRICS:
         cell = spread([s["deterministic"][name] for s in per_run], form)
         if all("stochastic" in s for s in per_run):
             cell += f" ({spread([s['stochastic'][name] for s in per_run], form)})"
         cells.append(cell)
-    training = [statistics.mean(read_series(run, "reward_per_decision")[1][-8:]) for run in runs]
+    training = []
+    for run in runs:
+        steps, rewards = read_series(run, "reward_per_decision")
+        training.append(
+            statistics.mean(
+                [r for s, r in zip(steps, rewards, strict=True) if at is None or s <= at][-8:]
+            )
+        )
     cells.append(spread(training, "{:+.3f}"))
     return cells
 
@@ -68,6 +86,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("recipes", nargs="+", help="label=summary,summary,...")
     parser.add_argument("--baselines", type=Path, help="an evaluate_baselines JSON file")
+    parser.add_argument("--env-steps", type=int, help="score every run at this many env-steps")
     args = parser.parse_args()
     header = ["recipe", "seeds", "env-steps", *(name for name, _ in METRICS)]
     header.append("training reward / decision, last 8")
@@ -75,7 +94,8 @@ def main() -> None:
     print("|" + "---|" * len(header))
     for recipe in args.recipes:
         label, _, paths = recipe.rpartition("=")  # labels may hold overrides
-        print("| " + " | ".join(row(label, [Path(p) for p in paths.split(",")])) + " |")
+        runs = [Path(p) for p in paths.split(",")]
+        print("| " + " | ".join(row(label, runs, args.env_steps)) + " |")
     if args.baselines:
         results = json.loads(args.baselines.read_text())["results"]
         for name, metrics in results.items():

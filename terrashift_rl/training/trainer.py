@@ -113,9 +113,9 @@ class TrainConfig:
     """Clip range of the policy's probability ratio (the loss's ``clip_epsilon``) at the start."""
     clip_epsilon_end: float = 0.1
     """Clip range of the probability ratio after ``schedule_iterations`` updates."""
-    entropy_coeff_start: float = 0.001
+    entropy_coeff_start: float = 0.002
     """Weight of the entropy bonus (the loss's ``entropy_coeff``) at the start."""
-    entropy_coeff_end: float = 0.001
+    entropy_coeff_end: float = 0.002
     """Weight of the entropy bonus after ``schedule_iterations`` updates."""
     clip_value_start: float = 0.3
     """Clip range of the critics' estimates around those at collection (the loss's

@@ -92,6 +92,26 @@ def test_the_train_and_loss_groups_split_train_config_and_default_to_its_default
     assert train_config_of(cfg) == default
 
 
+def test_the_table1_options_give_the_papers_table_1():
+    from terrashift_rl.modules import TerraShiftModelConfig
+
+    cfg = compose_config("mapoca_pretrain", "model=table1", "train=table1", "loss=table1")
+    assert TerraShiftModelConfig(**cfg.model) == TerraShiftModelConfig()
+    config = train_config_of(cfg)
+    # 8,192 decisions per update in sequences of 32, mini-batches of 32 sequences, 4 epochs
+    assert config.num_envs * config.steps_per_iteration == 8 * 1024
+    assert config.steps_per_iteration == 32
+    assert config.num_envs // config.minibatches == 32
+    assert config.epochs == 4
+    assert (config.gamma, config.lmbda) == (0.95, 0.92)
+    assert (config.lr_trunk_policy, config.lr_value_baseline) == (1e-4, 2e-4)
+    assert (config.lr_schedule, config.lr_end_factor, config.weight_decay) == ("linear", 0.1, 0.0)
+    assert config.schedule_iterations == 10_000
+    assert (config.clip_epsilon_start, config.clip_epsilon_end) == (0.2, 0.1)
+    assert (config.entropy_coeff_start, config.entropy_coeff_end) == (0.005, 0.001)
+    assert (config.max_grad_norm_start, config.max_grad_norm_end) == (5.0, 0.5)
+
+
 @pytest.mark.parametrize(
     "path",
     sorted(
@@ -228,11 +248,11 @@ without_cuda = pytest.mark.skipif(torch.cuda.is_available(), reason="needs a mac
             (32, 32, 16),
         ),
         (
-            ["train=smoke", "model=medium"],
+            ["train=smoke", "model=table1"],
             "no CUDA device: a CPU-sized run (run.eval_episodes=16); set run.device=cpu",
-            (4, 64, 16),
+            (4, 128, 16),
         ),
-        (["run.device=cpu", "train.num_envs=4", "train.minibatches=2"], None, (4, 128, 128)),
+        (["run.device=cpu", "train.num_envs=4", "train.minibatches=2"], None, (4, 64, 128)),
     ],
     ids=["configured", "train-and-model-given", "device-cpu"],
 )
@@ -266,10 +286,10 @@ def test_without_cuda_auto_sizes_a_run_for_the_cpu_but_what_the_command_line_set
 @pytest.mark.slow
 @without_cuda
 def test_without_cuda_finetuning_builds_the_network_of_its_checkpoint(tmp_path):
-    # a checkpoint of another model than the CPU-sized run's model=small
+    # a checkpoint of another model than the CPU-sized run's model=small and the configured one
     pretrained = run(
         "mapoca_pretrain.py",
-        "model=medium",
+        "model=table1",
         "run.total_env_steps=1",
         "hydra.run.dir=a",
         cwd=tmp_path,
