@@ -95,7 +95,7 @@ def summarise(curves: dict[str, dict[int, list[float]]], final_iterations: int) 
 
 TRAINING_ARGS = (
     "env", "iterations", "num_envs", "episode_steps", "epochs", "minibatch_size", "lr", "gamma",
-    "lmbda", "entropy_coeff", "width", "depth", "critic_depth",
+    "lmbda", "entropy_coeff", "width", "depth", "critic_depth", "counterfactual_warmup",
 )  # fmt: skip
 """The example's options that shape a run: outputs merged together must agree on them."""
 
@@ -104,8 +104,11 @@ def merge(results: list[dict], final_iterations: int, seeds: list[int] | None = 
     """One output from several of the same settings (say, one per method, run side by side):
     the curves together (of ``seeds`` only, if given), the table recomputed, every source's
     command or settings kept."""
-    # the example's option --critic-depth was 2 (its default) where a file predates it
-    settings = [{"critic_depth": 2, **result["args"]} for result in results]
+    # the example's options --critic-depth and --counterfactual-warmup were 2 and 0 (their
+    # defaults) where a file predates them
+    settings = [
+        {"critic_depth": 2, "counterfactual_warmup": 0, **result["args"]} for result in results
+    ]
     for key in TRAINING_ARGS:
         values = {json.dumps(setting[key]) for setting in settings}
         if len(values) > 1:
@@ -150,16 +153,18 @@ def markdown(results: list[dict]) -> str:
     for result in results:
         table = result["table"]
         scenario = result["args"]["env"].removeprefix("vmas:")
+        warmup = result["args"].get("counterfactual_warmup", 0)
         for method in METHODS:
             if method not in table:
                 continue
             row = table[method]
+            label = f"{method}, warm-up {warmup}" if method == "MAPOCA" and warmup else method
             cells = [f"{row[m]['mean']:+.4f} ± {row[m]['sd']:.4f}" for m in ("final", "auc")]
             ratios = ["", ""]
             if method == "MAPOCA" and "MAPOCA_vs_MAPPO" in table:
                 ratios = [f"{table['MAPOCA_vs_MAPPO'][m]['ratio']:.3f}" for m in ("final", "auc")]
             lines.append(
-                f"| {scenario} | {method} | {len(row['seeds'])} | {cells[0]} | {cells[1]} | "
+                f"| {scenario} | {label} | {len(row['seeds'])} | {cells[0]} | {cells[1]} | "
                 f"{ratios[0]} | {ratios[1]} |"
             )
     return "\n".join(lines)

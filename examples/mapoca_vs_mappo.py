@@ -234,8 +234,14 @@ def train(
     gamma: float,
     lmbda: float,
     max_grad_norm: float = 1.0,
+    counterfactual_warmup: int = 0,
 ) -> list[float]:
-    """Trains ``loss`` on ``env``; returns the mean team reward per step of every batch."""
+    """Trains ``loss`` on ``env``; returns the mean team reward per step of every batch.
+
+    With ``counterfactual_warmup`` n > 0 (MAPOCALoss only), the loss's ``counterfactual_weight``
+    rises linearly from 0 at the first batch to 1 at batch n: the advantages start as G - V and
+    end as MA-POCA's counterfactual G - b_i.
+    """
     loss.make_value_estimator(loss.default_value_estimator, gamma=gamma, lmbda=lmbda)
     optimiser = torch.optim.Adam(loss.parameters(), lr=lr)
     collector = Collector(
@@ -246,7 +252,9 @@ def train(
         auto_register_policy_transforms=False,  # feed-forward policy: no recurrent state
     )
     mean_rewards = []
-    for data in collector:
+    for iteration, data in enumerate(collector):
+        if counterfactual_warmup > 0:
+            loss.counterfactual_weight = min(1.0, iteration / counterfactual_warmup)
         # torchrl's PPO and MAPPO examples make this call; MAPOCALoss accepts it as they do
         loss.value_estimator(
             data,
@@ -291,6 +299,7 @@ def run(method: str, *, env_name: str, seed: int, args: argparse.Namespace) -> l
         lr=args.lr,
         gamma=args.gamma,
         lmbda=args.lmbda,
+        counterfactual_warmup=args.counterfactual_warmup if method == "MAPOCA" else 0,
     )
 
 
@@ -316,6 +325,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         default=2,
         help="hidden layers of MAPPO's critic; MA-POCA's critics get half as many before and "
         "half after their attention",
+    )
+    parser.add_argument(
+        "--counterfactual-warmup",
+        type=int,
+        default=0,
+        help="iterations over which MA-POCA's advantages move from G - V to G - b_i "
+        "(MAPOCALoss's counterfactual_weight from 0 to 1); 0: G - b_i throughout",
     )
     parser.add_argument("--final-iterations", type=int, default=5)
     parser.add_argument("--json", default=None, help="where to write the curves and the table")

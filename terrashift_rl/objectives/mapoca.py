@@ -74,8 +74,9 @@ class MAPOCAValueEstimator:
     * ``value`` ``[*B, T, 1]``: V(s_t), the old value the value loss is clipped against.
     * ``value_target`` ``[*B, T, 1]``: G_t, the team λ-return from V alone.
     * ``baseline`` ``[*B, T, K, 1]``: b_i(s_t, a_t^-i), the old baselines.
-    * ``advantage`` ``[*B, T, K, 1]``: G_t - b_i, normalised over present agents and all steps
-      if the loss asks for it; zero for absent agents.
+    * ``advantage`` ``[*B, T, K, 1]``: G_t - b_i (G_t - (w b_i + (1 - w) V(s_t)) with the
+      loss's ``counterfactual_weight`` w below 1), normalised over present agents and all
+      steps if the loss asks for it; zero for absent agents.
 
     V(s_{t+1}) comes from running the networks on ``data["next"]``, torchrl's convention: a
     recurrent network reads the collected ``("next", <state>)`` there, the state after step t,
@@ -216,7 +217,11 @@ class MAPOCAValueEstimator:
                 time_dim=time_dim,
             )
 
-        advantage = value_target.unsqueeze(-2) - baseline
+        # the advantage's reference: b_i, or a blend with V while the baselines are still
+        # fitted worse than V (counterfactual_weight < 1)
+        weight = loss.counterfactual_weight
+        value = state_value.unsqueeze(-2)
+        advantage = value_target.unsqueeze(-2) - (value + weight * (baseline - value))
         if loss.normalize_advantage:
             advantage = _masked_standardize(advantage, agent_mask)
         if agent_mask is not None:
@@ -352,6 +357,12 @@ class MAPOCALoss(LossModule):
         teacher_coeff: weight of the pull of the policy's mean action towards the
             ``teacher_action`` key (the policy's distribution must have a ``mean``); ``None``
             reads no teacher.
+        counterfactual_weight: w in A_i = G - (w b_i + (1 - w) V), in [0, 1]. 1 is MA-POCA's
+            counterfactual advantage; 0 the centralised value's G - V, MAPPO's (the baselines
+            still train). Early in training the baselines, which also read the other agents'
+            actions, fit the returns worse than V, and their error is noise in every agent's
+            advantage: a schedule from 0 to 1 over the first updates starts as fast as MAPPO
+            and ends with the counterfactual credit (docs/results.md, "MAPOCALoss on VMAS").
 
     Examples:
         >>> import torch
@@ -454,6 +465,7 @@ class MAPOCALoss(LossModule):
             "baseline_coeff",
             "clip_value",
             "teacher_coeff",
+            "counterfactual_weight",
         }
     )
 
@@ -479,6 +491,7 @@ class MAPOCALoss(LossModule):
         team_reward_reduction: Literal["mean", "sum"] = "mean",
         value_normalizer: ValueNormalizer | None = None,
         teacher_coeff: float | None = None,
+        counterfactual_weight: float = 1.0,
     ) -> None:
         if team_reward_reduction not in ("mean", "sum"):
             raise ValueError(
@@ -487,6 +500,10 @@ class MAPOCALoss(LossModule):
         if loss_critic_type not in ("l2", "smooth_l1", "l1"):
             raise ValueError(
                 f"loss_critic_type must be 'l2', 'smooth_l1' or 'l1', got {loss_critic_type!r}."
+            )
+        if isinstance(counterfactual_weight, bool) or not 0.0 <= counterfactual_weight <= 1.0:
+            raise ValueError(
+                f"counterfactual_weight must be a float in [0, 1], got {counterfactual_weight!r}."
             )
         super().__init__()
         # Plain submodules, not torchrl's functional parameter copies: nn.Module then yields a
@@ -503,6 +520,7 @@ class MAPOCALoss(LossModule):
             ("baseline_coeff", baseline_coeff),
             ("clip_value", clip_value),
             ("teacher_coeff", teacher_coeff),
+            ("counterfactual_weight", counterfactual_weight),
         ):
             self.register_coeff_buffer(name, value, device=device, dtype=torch.float32)
         self.loss_critic_type = loss_critic_type

@@ -70,3 +70,11 @@ def test_merge_refuses_runs_of_other_settings_or_the_same_run_twice():
         merge([mapoca, _output("MAPPO", {"0": [0.5, 0.5]}, lr=2)], final_iterations=1)
     with pytest.raises(ValueError, match="MAPOCA seed 0 is in more than one output"):
         merge([mapoca, mapoca], final_iterations=1)
+
+
+def test_table_names_the_warm_up_of_ma_pocas_advantages():
+    curves = {"MAPOCA": {0: [0.5, 1.0]}, "MAPPO": {0: [0.5, 0.5]}}
+    table = summarise(curves, final_iterations=1)
+    result = {"args": {"env": "vmas:navigation", "counterfactual_warmup": 20}, "table": table}
+    rows = markdown([result]).splitlines()[2:]
+    assert [row.split("|")[2] for row in rows] == [" MAPOCA, warm-up 20 ", " MAPPO "]

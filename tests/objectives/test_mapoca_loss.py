@@ -557,6 +557,42 @@ def test_advantage_normalisation_is_over_all_steps_and_agents():
     torch.testing.assert_close(data["agents", "advantage"].squeeze(-1), expected, **TOLERANCE)
 
 
+@pytest.mark.parametrize("weight", [0.0, 0.25, 1.0])
+def test_counterfactual_weight_blends_the_value_into_the_advantages_reference(weight):
+    modules = make_modules()
+    actor, value, baseline, _ = wrap(modules)
+    data = make_batch(actor)
+    returns, old_value, old_baseline = reference_returns(modules, data)
+    expected = torch.tensor(
+        [
+            [
+                [
+                    returns[n, t]
+                    - (weight * old_baseline[n, t][i] + (1 - weight) * old_value[n, t])
+                    for i in range(N_AGENTS)
+                ]
+                for t in range(N_STEPS)
+            ]
+            for n in range(N_ENVS)
+        ]
+    )
+    mask = data["agents", "mask"]
+    loss = make_loss(actor, value, baseline)
+    loss.counterfactual_weight = weight  # assigned in place, as a schedule does
+    loss.value_estimator(data)
+    advantage = data["agents", "advantage"].squeeze(-1)
+    torch.testing.assert_close(advantage[mask], expected[mask], **TOLERANCE)
+    # the baselines still train: their loss does not depend on the weight
+    assert loss(data)["loss_baseline"].item() > 0.0
+
+
+@pytest.mark.parametrize("weight", [-0.1, 1.5, True])
+def test_counterfactual_weight_outside_0_1_is_refused(weight):
+    actor, value, baseline, _ = wrap(make_modules())
+    with pytest.raises(ValueError, match="counterfactual_weight must be a float in"):
+        MAPOCALoss(actor, value, baseline, counterfactual_weight=weight)
+
+
 def test_forward_runs_the_value_estimation_pass_when_advantages_are_missing():
     modules = make_modules()
     actor, value, baseline, _ = wrap(modules)

@@ -111,3 +111,24 @@ def test_example_trains_both_losses_and_writes_the_table(tmp_path):
         assert sorted(curves) == ["0", "1"] and all(len(curve) == 2 for curve in curves.values())
         # the reward is minus a mean distance on the square [-1, 1]²
         assert all(-2 * 2**0.5 <= reward <= 0 for curve in curves.values() for reward in curve)
+
+
+def test_counterfactual_warmup_moves_the_weight_from_0_to_1(example):
+    env = example.TeamNavigationEnv(4, num_agents=2, episode_steps=5)
+    env.set_seed(0)
+    actor = example.make_actor(env, width=8, depth=1)
+    loss = example.make_mapoca_loss(env, actor, width=8, depth=1)
+    weights = []
+    estimator = loss.value_estimator
+    loss.make_value_estimator = lambda *args, **kwargs: None  # keep the recording estimator
+
+    def recording_estimator(data, **kwargs):
+        weights.append(loss.counterfactual_weight.item())
+        return estimator(data, **kwargs)
+
+    loss._value_estimator = recording_estimator
+    example.train(
+        loss, env, iterations=4, frames_per_batch=20, epochs=1, minibatch_size=10, lr=1e-3,
+        gamma=0.9, lmbda=0.9, counterfactual_warmup=2,
+    )  # fmt: skip
+    assert weights == [0.0, 0.5, 1.0, 1.0]
