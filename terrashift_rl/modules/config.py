@@ -103,6 +103,11 @@ class TerraShiftModelConfig:
     initial weights, so a run may resume with another value."""
     critic_hidden_dim: int = 128
     """Hidden width of the value and baseline MLPs."""
+    action_range: float = 1.0
+    """The policy's Beta spans [-action_range, action_range] in every action dimension, >= 1.
+    The simulator clips actions to the actuators' [-1, 1]; above 1, a mean action reaches an
+    actuator's limit at a moderate concentration instead of the Beta's very edge (2: a mean at
+    three quarters of the Beta's support), and samples beyond the limit act as the limit."""
 
     def __post_init__(self) -> None:
         stem_lengths = {
@@ -139,6 +144,11 @@ class TerraShiftModelConfig:
             raise ValueError("gru_layers must be at least 1.")
         if self.min_concentration <= 0:
             raise ValueError("min_concentration must be positive.")
+        if not self.action_range >= 1.0:
+            raise ValueError(
+                f"action_range must be >= 1 (below, the policy cannot reach the actuators' "
+                f"limits of +-1), got {self.action_range}."
+            )
         if self.policy_output_gain < 0:
             raise ValueError(f"policy_output_gain must be >= 0, got {self.policy_output_gain}.")
 

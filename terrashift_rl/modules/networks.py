@@ -91,6 +91,7 @@ class TerraShiftNetworks(nn.Module):
         self.policy_head = policy_head
         self.value_head = value_head
         self.baseline_head = baseline_head
+        span = 1.0 if config is None else config.action_range
         actor = ProbabilisticActor(
             TensorDictSequential(trunk, policy_head),
             in_keys={
@@ -102,7 +103,7 @@ class TerraShiftNetworks(nn.Module):
             # The concentrations are positive by construction; checking them (and every
             # log-prob's argument) would cost a host synchronisation per call and forbid
             # capturing acting and updating as CUDA graphs.
-            distribution_kwargs={"validate_args": False},
+            distribution_kwargs={"low": -span, "high": span, "validate_args": False},
             return_log_prob=True,
             log_prob_key=keys.ACTION_LOG_PROB,
         )

@@ -142,3 +142,20 @@ def test_policy_output_gain_scales_the_initial_action_distribution(small_config,
     assert spreads[0.01] < 2e-3 < 1e-2 < spreads[1.0]
     with pytest.raises(ValueError, match="policy_output_gain"):
         dataclasses.replace(small_config, policy_output_gain=-0.5)
+
+
+def test_action_range_widens_the_policys_support_about_the_same_beta(small_config, make_batch):
+    data = make_batch((16,))
+    actions = {}
+    for span in (1.0, 2.0):
+        torch.manual_seed(0)
+        config = dataclasses.replace(small_config, action_range=span)
+        networks = make_terrashift_networks(config, action_dim=ACTION_DIM).eval()
+        with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
+            actions[span] = networks.actor(data.clone())[keys.ACTION]
+        dist = networks.actor.get_dist(data.clone())
+        assert (dist.low, dist.high) == (-span, span)
+    # the same weights and Beta, its support stretched about zero
+    torch.testing.assert_close(actions[2.0], 2.0 * actions[1.0])
+    with pytest.raises(ValueError, match="action_range must be >= 1"):
+        dataclasses.replace(small_config, action_range=0.5)
