@@ -98,6 +98,8 @@ TRAINING_ARGS = (
     "lmbda", "entropy_coeff", "width", "depth", "critic_depth", "counterfactual_warmup",
 )  # fmt: skip
 """The example's options that shape a run: outputs merged together must agree on them."""
+MAPOCA_ARGS = ("counterfactual_warmup",)
+"""Those that shape MA-POCA's runs alone: outputs without MA-POCA runs need not agree on them."""
 
 
 def merge(results: list[dict], final_iterations: int, seeds: list[int] | None = None) -> dict:
@@ -109,10 +111,18 @@ def merge(results: list[dict], final_iterations: int, seeds: list[int] | None = 
     settings = [
         {"critic_depth": 2, "counterfactual_warmup": 0, **result["args"]} for result in results
     ]
+    merged_args = {}
     for key in TRAINING_ARGS:
-        values = {json.dumps(setting[key]) for setting in settings}
+        # an option of MA-POCA's alone need not agree with outputs that hold no MA-POCA run
+        relevant = [
+            setting
+            for setting, result in zip(settings, results, strict=True)
+            if key not in MAPOCA_ARGS or "MAPOCA" in result["curves"]
+        ] or settings
+        values = {json.dumps(setting[key]) for setting in relevant}
         if len(values) > 1:
             raise ValueError(f"the outputs differ in {key}: {sorted(values)}")
+        merged_args[key] = relevant[0][key]
     curves: dict[str, dict[int, list[float]]] = {}
     for result in results:
         for method, runs in result["curves"].items():
@@ -134,8 +144,7 @@ def merge(results: list[dict], final_iterations: int, seeds: list[int] | None = 
             }
             for result in results
         ],
-        "args": {key: settings[0][key] for key in TRAINING_ARGS}
-        | {"final_iterations": final_iterations},
+        "args": merged_args | {"final_iterations": final_iterations},
         "auc": AUC,
         "final": f"mean of the curve over the last {final_iterations} iterations",
         "table": summarise(curves, final_iterations),
@@ -143,8 +152,21 @@ def merge(results: list[dict], final_iterations: int, seeds: list[int] | None = 
     }
 
 
+def read_output(source: str) -> dict:
+    """An output file, ``FILE`` or ``FILE:METHOD`` (then with that method's runs only)."""
+    path, _, method = source.rpartition(":")
+    if method not in METHODS:
+        return json.loads(Path(source).read_text())
+    result = json.loads(Path(path).read_text())
+    if method not in result["curves"]:
+        raise ValueError(f"{path} holds no {method} runs")
+    result["curves"] = {method: result["curves"][method]}
+    return result
+
+
 def markdown(results: list[dict]) -> str:
-    """The table of docs/results.md for one or more output files."""
+    """The table of docs/results.md for one or more output files; a row that repeats one
+    above it (the same MAPPO runs in two outputs) is given once."""
     lines = [
         "| scenario | method | seeds | final reward | AUC | final, MAPOCA / MAPPO | "
         "AUC, MAPOCA / MAPPO |",
@@ -163,10 +185,12 @@ def markdown(results: list[dict]) -> str:
             ratios = ["", ""]
             if method == "MAPOCA" and "MAPOCA_vs_MAPPO" in table:
                 ratios = [f"{table['MAPOCA_vs_MAPPO'][m]['ratio']:.3f}" for m in ("final", "auc")]
-            lines.append(
+            line = (
                 f"| {scenario} | {label} | {len(row['seeds'])} | {cells[0]} | {cells[1]} | "
                 f"{ratios[0]} | {ratios[1]} |"
             )
+            if line not in lines:
+                lines.append(line)
     return "\n".join(lines)
 
 
@@ -190,16 +214,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--merge",
         nargs="+",
-        type=Path,
         default=None,
-        help="merge these output files (or the example's --json files) into --output and exit",
+        help="merge these output files (or the example's --json files) into --output and exit; "
+        "FILE:METHOD takes only that method's runs of FILE",
     )
     args, example_argv = parser.parse_known_args(argv)
     if args.table is not None:
         print(markdown([json.loads(path.read_text()) for path in args.table]))
         return
     if args.merge is not None:
-        outputs = [json.loads(path.read_text()) for path in args.merge]
+        outputs = [read_output(source) for source in args.merge]
         result = merge(outputs, args.final_iterations, args.seeds)
         print(markdown([result]))
         if args.output is not None:

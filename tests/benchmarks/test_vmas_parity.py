@@ -8,7 +8,15 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
 
-from vmas_parity import TRAINING_ARGS, main, markdown, merge, scores, summarise  # noqa: E402
+from vmas_parity import (  # noqa: E402
+    TRAINING_ARGS,
+    main,
+    markdown,
+    merge,
+    read_output,
+    scores,
+    summarise,
+)
 
 
 def test_final_is_the_mean_of_the_last_points_and_auc_the_mean_of_all():
@@ -78,3 +86,42 @@ def test_table_names_the_warm_up_of_ma_pocas_advantages():
     result = {"args": {"env": "vmas:navigation", "counterfactual_warmup": 20}, "table": table}
     rows = markdown([result]).splitlines()[2:]
     assert [row.split("|")[2] for row in rows] == [" MAPOCA, warm-up 20 ", " MAPPO "]
+
+
+def test_merge_takes_mappo_runs_beside_mapoca_runs_of_another_warm_up():
+    mapoca = _output("MAPOCA", {"0": [0.0, 1.0]}, counterfactual_warmup=20)
+    mappo = _output("MAPPO", {"0": [0.5, 0.5]}, counterfactual_warmup=0)
+    merged = merge([mapoca, mappo], final_iterations=1)
+    assert merged["args"]["counterfactual_warmup"] == 20
+    assert merged["table"]["MAPOCA_vs_MAPPO"]["final"]["ratio"] == 2.0
+    other = _output("MAPOCA", {"1": [0.0, 1.0]}, counterfactual_warmup=0)
+    with pytest.raises(ValueError, match="differ in counterfactual_warmup"):
+        merge([mapoca, other, mappo], final_iterations=1)
+
+
+def test_merge_reads_one_method_of_a_file(tmp_path):
+    both = _output("MAPOCA", {"0": [0.0, 1.0]}, counterfactual_warmup=0)
+    both["curves"]["MAPPO"] = {"0": [0.5, 0.5]}
+    path = tmp_path / "both.json"
+    path.write_text(json.dumps(both))
+    assert read_output(f"{path}:MAPPO")["curves"] == {"MAPPO": {"0": [0.5, 0.5]}}
+    assert read_output(str(path))["curves"] == both["curves"]
+    warm = _output("MAPOCA", {"0": [0.0, 2.0]}, counterfactual_warmup=20)
+    merged = merge([warm, read_output(f"{path}:MAPPO")], final_iterations=1)
+    assert merged["table"]["MAPOCA_vs_MAPPO"]["final"]["ratio"] == 4.0
+    (tmp_path / "warm.json").write_text(json.dumps(warm))
+    with pytest.raises(ValueError, match="warm.json holds no MAPPO runs"):
+        read_output(f"{tmp_path / 'warm.json'}:MAPPO")
+
+
+def test_table_gives_the_same_mappo_runs_of_two_outputs_once():
+    mappo = {0: [0.5, 0.5]}
+    outputs = [
+        {
+            "args": {"env": "vmas:balance", "counterfactual_warmup": warmup},
+            "table": summarise({"MAPOCA": {0: [0.5, value]}, "MAPPO": mappo}, final_iterations=1),
+        }
+        for warmup, value in ((0, 0.25), (20, 1.0))
+    ]
+    rows = markdown(outputs).splitlines()[2:]
+    assert [row.split("|")[2] for row in rows] == [" MAPOCA ", " MAPPO ", " MAPOCA, warm-up 20 "]
