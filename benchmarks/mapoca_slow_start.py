@@ -12,8 +12,8 @@ critics put half before their attention and half after it):
 - ``attention``: the example's MA-POCA, the generic critics ``CentralValue`` and
   ``CounterfactualBaseline``.
 - ``value-advantage``: the same networks and losses, but the policy's advantages are G - V,
-  the central value's (standardised as the loss standardises its own), in place of the
-  counterfactual G - b_i; the baselines still train.
+  the central value's, in place of the counterfactual G - b_i (MAPOCALoss's
+  ``counterfactual_weight=0``); the baselines still train.
 - ``mlp``: MLPs on concatenated inputs in place of attention (tanh, as MAPPO's critic): V on
   every agent's observation, b_i on agent i's observation and the other agents'
   observation-action pairs (in the order i+1, i+2, ... around the team), both ``depth`` hidden
@@ -45,12 +45,10 @@ VARIANTS = ("attention", "value-advantage", "mlp")
 
 
 class RecordingEstimator:
-    """The loss's value-estimation pass, then records how well V and b_i fit the returns;
-    with ``value_advantage``, writes G - V as every agent's advantage."""
+    """The loss's value-estimation pass, then records how well V and b_i fit the returns."""
 
-    def __init__(self, estimator: MAPOCAValueEstimator, *, value_advantage: bool) -> None:
+    def __init__(self, estimator: MAPOCAValueEstimator) -> None:
         self.estimator = estimator
-        self.value_advantage = value_advantage
         self.record: dict[str, list[float]] = {"ev_value": [], "ev_baseline": [], "corr": []}
 
     def __call__(self, data, **kwargs):
@@ -63,21 +61,15 @@ class RecordingEstimator:
         self.record["corr"].append(torch.corrcoef(pair)[0, 1].item())
         self.record["ev_value"].append((1 - (returns - value).var() / returns.var()).item())
         self.record["ev_baseline"].append((1 - counterfactual.var() / returns.var()).item())
-        if self.value_advantage:
-            data["agents", "advantage"] = (central - central.mean()) / (central.std() + 1e-8)
         return data
 
 
 class RecordingMAPOCALoss(MAPOCALoss):
     """MAPOCALoss whose value-estimation pass is a :class:`RecordingEstimator`."""
 
-    value_advantage = False
-
     def make_value_estimator(self, *args, **kwargs):
         super().make_value_estimator(*args, **kwargs)
-        self._value_estimator = RecordingEstimator(
-            self._value_estimator, value_advantage=self.value_advantage
-        )
+        self._value_estimator = RecordingEstimator(self._value_estimator)
         return self
 
 
@@ -144,10 +136,9 @@ def make_loss(variant: str, made: list[MAPOCALoss]):
         else:
             generic = example.make_mapoca_loss(env, actor, width=width, depth=depth)
             value, baseline = generic.value_network, generic.baseline_network
-        loss_class = type(
-            "Loss", (RecordingMAPOCALoss,), {"value_advantage": variant == "value-advantage"}
-        )
-        made.append(loss_class(actor, value, baseline, **options))
+        if variant == "value-advantage":
+            options["counterfactual_weight"] = 0.0  # G - V; the baselines still train
+        made.append(RecordingMAPOCALoss(actor, value, baseline, **options))
         return made[-1]
 
     return factory

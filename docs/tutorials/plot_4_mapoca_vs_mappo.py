@@ -129,7 +129,12 @@ for method, curve in rewards.items():
 # benchmark; ``python examples/mapoca_vs_mappo.py --seeds 0 1 2 3 4 5`` compares the two over
 # seeds, and ``--env vmas:<scenario>`` on VMAS. Besides the credit assignment, the comparison
 # also sets the critics apart: attention over the agents for MA-POCA, an MLP on their
-# concatenated observations for MAPPO.
+# concatenated observations for MAPPO. Early on, the counterfactual baselines fit the returns
+# worse than the central value, and their error is noise in every agent's advantage:
+# ``MAPOCALoss(..., counterfactual_weight=w)`` takes the advantages from G - (w b_i + (1 - w) V),
+# and ``example.train(..., counterfactual_warmup=n)`` raises w from 0 to 1 over the first n
+# iterations (``--counterfactual-warmup`` of the example), which put MA-POCA level with or above
+# MAPPO on VMAS (docs/results.md, "MAPOCALoss on VMAS").
 fig, ax = plt.subplots(figsize=(6, 3.5))
 for method, curve in rewards.items():
     ax.plot(curve, label=method)

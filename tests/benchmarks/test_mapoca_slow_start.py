@@ -39,7 +39,8 @@ def test_value_advantage_gives_every_agent_the_standardised_central_advantage():
     data = loss.value_estimator(_collected(loss, env))
     advantage = data["agents", "advantage"]
     central = (data["value_target"] - data["state_value"]).unsqueeze(-2).expand_as(advantage)
-    torch.testing.assert_close(advantage, (central - central.mean()) / central.std())
+    expected = (central - central.mean()) / central.std(unbiased=False)
+    torch.testing.assert_close(advantage, expected)
     assert (advantage == advantage[..., :1, :]).all()  # the same for every agent
     record = made[-1].value_estimator.record
     assert [len(values) for values in record.values()] == [1, 1, 1]
