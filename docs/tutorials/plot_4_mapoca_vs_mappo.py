@@ -1,28 +1,29 @@
 """
-MAPOCALoss beside MAPPO on a continuous-action task
-===================================================
+MAPOCALoss beside MAPPO on a VMAS task
+======================================
 
 This tutorial trains :class:`~terrashift_rl.objectives.mapoca.MAPOCALoss` as a TorchRL user would
-in a project of their own: a multi-agent environment with continuous actions, torchrl's
+in a project of their own: a VMAS scenario with continuous actions, torchrl's
 ``Collector``, the training loop of torchrl's MAPPO example, and the generic critics
 :class:`~terrashift_rl.modules.CentralValue` and
 :class:`~terrashift_rl.modules.CounterfactualBaseline`, built from the sizes of the
 observations and actions alone. torchrl's own ``MAPPOLoss`` trains beside it, with the same actor,
-hyperparameters and loop, for comparison. It runs on the CPU in well under a minute.
+hyperparameters and loop, for comparison. It runs on the CPU in about a minute.
 
 The code is the script ``examples/mapoca_vs_mappo.py`` of the repository, which also runs the same
-comparison over several seeds, or on a VMAS scenario (``pip install vmas``;
-``python examples/mapoca_vs_mappo.py --env vmas:balance``).
+comparison over several seeds (``python examples/mapoca_vs_mappo.py --env vmas:navigation
+--seeds 0 1 2``); VMAS comes with the ``vmas`` and ``docs`` extras (``pip install -e '.[vmas]'``).
 
 The environment
 ---------------
 
-``TeamNavigationEnv`` is a small pure-torch environment: K agents on a plane, each steering to a
-goal of its own, and one reward for the whole team, minus the mean distance still to go. Every
+VMAS's ``navigation`` scenario, through torchrl's ``VmasEnv``: 4 agents on a plane, each
+steering to a goal of its own, avoiding the others; every agent gets the team's shaped reward
+(the progress of all agents towards their goals) and a penalty for each collision. Every
 agent's reward thus also carries the others' progress; MA-POCA's counterfactual baselines are
-meant to take that noise out of each agent's advantage. Its keys are those of torchrl's VMAS
-environments: the group ``"agents"`` (batch shape ``[*B, K]``), per-agent rewards and team done
-flags, which are also :class:`MAPOCALoss`'s default keys.
+meant to take that noise out of each agent's advantage. torchrl's VMAS keys, the group
+``"agents"`` (batch shape ``[*B, K]``), per-agent rewards and team done flags, are also
+:class:`MAPOCALoss`'s default keys.
 """
 
 # %%
@@ -41,10 +42,12 @@ torch.set_num_threads(1)
 sys.path.insert(0, str(Path(terrashift_rl.__path__[0]).parent / "examples"))
 import mapoca_vs_mappo as example  # noqa: E402
 
-print(inspect.getsource(example.TeamNavigationEnv._step))
-env = example.TeamNavigationEnv(32, num_agents=3, episode_steps=20)
+NUM_ENVS, EPISODE_STEPS = 32, 50
+env = example.make_env("vmas:navigation", num_envs=NUM_ENVS, episode_steps=EPISODE_STEPS, seed=0)
 print(env.full_observation_spec["agents"])
 print(env.full_action_spec["agents"])
+observation_dim = env.full_observation_spec["agents", "observation"].shape[-1]
+action_dim = env.full_action_spec["agents", "action"].shape[-1]
 
 # %%
 # The actor
@@ -69,8 +72,8 @@ print(inspect.getsource(example.make_actor))
 # below.
 from terrashift_rl.modules import CentralValue, CounterfactualBaseline  # noqa: E402
 
-value = CentralValue(observation_dim=4, width=64, depth=1)
-baseline = CounterfactualBaseline(observation_dim=4, action_dim=2, width=64, depth=1)
+value = CentralValue(observation_dim, width=64, depth=1)
+baseline = CounterfactualBaseline(observation_dim, action_dim, width=64, depth=1)
 print(value.in_keys, "->", value.out_keys)
 print(baseline.in_keys, "->", baseline.out_keys)
 data = env.reset()
@@ -100,41 +103,47 @@ print(inspect.getsource(example.make_mappo_loss))
 # untrained: the loss warns once if a backward pass goes through ``loss_critic`` without it.
 print(inspect.getsource(example.train))
 
+# %%
+# Early in training the counterfactual baselines fit the returns worse than the central value
+# does, and their error is noise in every agent's advantage.
+# ``MAPOCALoss(..., counterfactual_weight=w)`` takes the advantages from
+# G - (w b_i + (1 - w) V): the central value's G - V at w = 0, MA-POCA's G - b_i at w = 1 (its
+# default). ``train(..., counterfactual_warmup=n)`` raises w from 0 to 1 over the first n
+# iterations, as the benchmark of docs/results.md ("MAPOCALoss on VMAS") does over 20 of 100.
+
 
 def train(method: str, seed: int = 0) -> list[float]:
     torch.manual_seed(seed)
-    env = example.make_env("team_navigation", num_envs=32, episode_steps=20, seed=seed)
+    env = example.make_env(
+        "vmas:navigation", num_envs=NUM_ENVS, episode_steps=EPISODE_STEPS, seed=seed
+    )
     actor = example.make_actor(env, width=64, depth=2)
     loss = example.LOSSES[method](env, actor, width=64, depth=2, entropy_coeff=0.0)
     return example.train(
         loss,
         env,
-        iterations=20,
-        frames_per_batch=32 * 20,
+        iterations=15,
+        frames_per_batch=NUM_ENVS * EPISODE_STEPS,  # one episode per environment
         epochs=4,
         minibatch_size=160,
         lr=3e-3,
         gamma=0.9,
         lmbda=0.9,
+        counterfactual_warmup=5 if method == "MAPOCA" else 0,
     )
 
 
 rewards = {method: train(method) for method in ("MAPOCA", "MAPPO")}
 for method, curve in rewards.items():
-    print(f"{method}: mean team reward per step {curve[0]:+.2f} -> {curve[-1]:+.2f}")
+    print(f"{method}: mean team reward per step {curve[0]:+.3f} -> {curve[-1]:+.3f}")
 
 # %%
-# The mean team reward per step rises from that of random actions (about -1) as the agents learn
-# to head for their goals. One seed and a small budget make this a demonstration, not a
-# benchmark; ``python examples/mapoca_vs_mappo.py --seeds 0 1 2 3 4 5`` compares the two over
-# seeds, and ``--env vmas:<scenario>`` on VMAS. Besides the credit assignment, the comparison
-# also sets the critics apart: attention over the agents for MA-POCA, an MLP on their
-# concatenated observations for MAPPO. Early on, the counterfactual baselines fit the returns
-# worse than the central value, and their error is noise in every agent's advantage:
-# ``MAPOCALoss(..., counterfactual_weight=w)`` takes the advantages from G - (w b_i + (1 - w) V),
-# and ``example.train(..., counterfactual_warmup=n)`` raises w from 0 to 1 over the first n
-# iterations (``--counterfactual-warmup`` of the example), which put MA-POCA level with or above
-# MAPPO on VMAS (docs/results.md, "MAPOCALoss on VMAS").
+# The mean team reward per step rises from about zero, random motion's, as the agents learn to
+# head for their goals. One seed and a small budget make this a demonstration, not a benchmark:
+# ``python benchmarks/vmas_parity.py --scenario navigation`` compares the two over six seeds of
+# 100 iterations, final reward and area under the curve. Besides the credit assignment, the
+# comparison also sets the critics apart: attention over the agents for MA-POCA, an MLP on their
+# concatenated observations for MAPPO.
 fig, ax = plt.subplots(figsize=(6, 3.5))
 for method, curve in rewards.items():
     ax.plot(curve, label=method)
