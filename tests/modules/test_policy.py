@@ -127,15 +127,20 @@ def test_dropout_is_off_during_collection_and_on_in_updates(small_config, make_b
     assert not torch.allclose(updated, collected[keys.ACTION_LOG_PROB], atol=1e-4)
 
 
+def mean_action(config, data, **overrides):
+    """Networks of ``config`` with ``overrides`` (seeded weights) and their mean action."""
+    torch.manual_seed(0)
+    config = dataclasses.replace(config, **overrides)
+    networks = make_terrashift_networks(config, action_dim=ACTION_DIM).eval()
+    with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
+        return networks, networks.actor(data.clone())[keys.ACTION]
+
+
 def test_policy_output_gain_scales_the_initial_action_distribution(small_config, make_batch):
     data = make_batch((64,))
     spreads = {}
     for gain in (1.0, 0.01):
-        torch.manual_seed(0)
-        config = dataclasses.replace(small_config, policy_output_gain=gain)
-        networks = make_terrashift_networks(config, action_dim=ACTION_DIM).eval()
-        with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
-            mean = networks.actor(data.clone())[keys.ACTION]
+        _, mean = mean_action(small_config, data, policy_output_gain=gain)
         spreads[gain] = mean.abs().max().item()
     # Near zero, every agent's Beta starts at softplus(0) + 1.01 in both concentrations: the
     # mean action is zero, whatever the observation; at PyTorch's default it is not.
@@ -148,11 +153,7 @@ def test_action_range_widens_the_policys_support_about_the_same_beta(small_confi
     data = make_batch((16,))
     actions = {}
     for span in (1.0, 2.0):
-        torch.manual_seed(0)
-        config = dataclasses.replace(small_config, action_range=span)
-        networks = make_terrashift_networks(config, action_dim=ACTION_DIM).eval()
-        with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
-            actions[span] = networks.actor(data.clone())[keys.ACTION]
+        networks, actions[span] = mean_action(small_config, data, action_range=span)
         dist = networks.actor.get_dist(data.clone())
         assert (dist.low, dist.high) == (-span, span)
     # the same weights and Beta, its support stretched about zero
