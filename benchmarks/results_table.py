@@ -62,22 +62,19 @@ def scores(run: Path, at: int | None = None) -> dict[str, dict[str, float]]:
 
 def row(label: str, runs: list[Path], at: int | None = None) -> list[str]:
     per_run = [scores(run, at) for run in runs]
+    rewards = [read_series(run, "reward_per_decision") for run in runs]
     cells = [label, str(len(runs))]
-    steps = [read_series(run, "reward_per_decision")[0][-1] / 1e6 for run in runs]
-    cells.append(f"{statistics.mean(steps) if at is None else at / 1e6:.1f} M")
+    end = statistics.mean(steps[-1] for steps, _ in rewards) if at is None else at
+    cells.append(f"{end / 1e6:.1f} M")
     for name, form in METRICS:
         cell = spread([s["deterministic"][name] for s in per_run], form)
         if all("stochastic" in s for s in per_run):
             cell += f" ({spread([s['stochastic'][name] for s in per_run], form)})"
         cells.append(cell)
-    training = []
-    for run in runs:
-        steps, rewards = read_series(run, "reward_per_decision")
-        training.append(
-            statistics.mean(
-                [r for s, r in zip(steps, rewards, strict=True) if at is None or s <= at][-8:]
-            )
-        )
+    training = [
+        statistics.mean([r for s, r in zip(*series, strict=True) if at is None or s <= at][-8:])
+        for series in rewards
+    ]
     cells.append(spread(training, "{:+.3f}"))
     return cells
 
