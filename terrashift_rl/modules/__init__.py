@@ -1,4 +1,4 @@
-"""TerraShift networks as TensorDict modules: shared trunk, Beta actor, MA-POCA critics, and
+"""TerraShift networks as TensorDict modules: shared trunk, Beta (or Gaussian) actor, MA-POCA critics, and
 IPPO's per-agent value.
 
 For another environment with flat per-agent observations, :class:`CentralValue` and
@@ -23,7 +23,7 @@ from terrashift_rl.modules.entities import AgentEncoder, ObjectEncoder
 from terrashift_rl.modules.heightmap import AdaptiveSpatialTokenizer, HeightmapEncoder
 from terrashift_rl.modules.independent import AgentValueHead, make_agent_value_head
 from terrashift_rl.modules.networks import TerraShiftNetworks, make_terrashift_networks
-from terrashift_rl.modules.policy import BetaPolicyHead
+from terrashift_rl.modules.policy import BetaPolicyHead, GaussianPolicyHead
 from terrashift_rl.modules.trunk import SharedEmbeddingNetwork, TerraShiftTrunk
 
 __all__ = [
@@ -37,6 +37,7 @@ __all__ = [
     "CentralValueHead",
     "CounterfactualBaseline",
     "CounterfactualBaselineHead",
+    "GaussianPolicyHead",
     "HeightmapEncoder",
     "ObjectEncoder",
     "ScaledBeta",

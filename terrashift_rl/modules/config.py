@@ -10,7 +10,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-__all__ = ["TerraShiftModelConfig"]
+__all__ = ["DISTRIBUTIONS", "TerraShiftModelConfig"]
+
+DISTRIBUTIONS = ("beta", "normal")
+"""Values of :attr:`TerraShiftModelConfig.distribution`."""
 
 
 @dataclass
@@ -101,6 +104,17 @@ class TerraShiftModelConfig:
     centred on the zero action whatever it observes; 0.01 is the setting Andrychowicz et al.
     (2021, "What matters in on-policy reinforcement learning?") recommend; it changes only the
     initial weights, so a run may resume with another value."""
+    distribution: str = "beta"
+    """The policy's action distribution: ``beta`` (the paper's: a Beta per action dimension on
+    ``[-action_range, action_range]``, concentrations from the network) or ``normal`` (a
+    Gaussian whose mean comes from the network and whose standard deviation is one learned
+    parameter per action dimension, shared by every state, as in RSL-RL and rl_games; the
+    simulator clips its samples to the actuators' [-1, 1]). A Beta whose mean nears an end of
+    its support must be concentrated, so there a decisive action costs entropy; a Gaussian's
+    mean and spread are set apart."""
+    initial_std: float = 0.5
+    """With ``distribution=normal``, the standard deviation every action dimension starts
+    from, > 0 (0.5 is about the spread of the Beta head's initial Beta(1.7, 1.7) on [-1, 1])."""
     critic_hidden_dim: int = 128
     """Hidden width of the value and baseline MLPs."""
     action_range: float = 1.0
@@ -149,6 +163,12 @@ class TerraShiftModelConfig:
                 f"action_range must be >= 1 (below, the policy cannot reach the actuators' "
                 f"limits of +-1), got {self.action_range}."
             )
+        if self.distribution not in DISTRIBUTIONS:
+            raise ValueError(
+                f"distribution must be one of {DISTRIBUTIONS}, got {self.distribution!r}."
+            )
+        if not (math.isfinite(self.initial_std) and self.initial_std > 0):
+            raise ValueError(f"initial_std must be a finite number > 0, got {self.initial_std}.")
         if self.policy_output_gain < 0:
             raise ValueError(f"policy_output_gain must be >= 0, got {self.policy_output_gain}.")
 

@@ -18,6 +18,8 @@ __all__ = [
     "HEIGHTMAP",
     "IS_INIT",
     "NEXT_RECURRENT_STATE",
+    "NORMAL_LOC",
+    "NORMAL_SCALE",
     "OBJECTS",
     "OBJECTS_MASK",
     "RECURRENT_STATE",
@@ -46,6 +48,11 @@ BETA_CONCENTRATION1 = ("agents", "concentration1")
 """float32 [B, K, A]: Beta alpha of each action dimension; written by the policy head."""
 BETA_CONCENTRATION0 = ("agents", "concentration0")
 """float32 [B, K, A]: Beta beta of each action dimension; written by the policy head."""
+NORMAL_LOC = ("agents", "loc")
+"""float32 [B, K, A]: Gaussian mean of each action dimension; written by the Gaussian head."""
+NORMAL_SCALE = ("agents", "scale")
+"""float32 [B, K, A]: Gaussian standard deviation of each action dimension (state-independent);
+written by the Gaussian head."""
 ACTION = ("agents", "action")
 """float32 [B, K, A] in [-1, 1]; written by the actor, read by the baseline."""
 ACTION_LOG_PROB = ("agents", "action_log_prob")

@@ -11,7 +11,9 @@ mask means all present, a missing recurrent state zeros at episode starts):
 - ``actor`` (trunk + ``policy_head`` + :class:`ScaledBeta`, a torchrl ``ProbabilisticActor``) reads
   the trunk's inputs; writes the trunk's outputs, ``("agents", "concentration1")`` and
   ``("agents", "concentration0")`` [B, K, A], ``("agents", "action")`` [B, K, A] in [-1, 1]
-  and ``("agents", "action_log_prob")`` [B, K].
+  and ``("agents", "action_log_prob")`` [B, K]. With ``config.distribution="normal"`` the head
+  writes ``("agents", "loc")`` and ``("agents", "scale")`` instead, the actor samples torchrl's
+  ``IndependentNormal``, and actions may leave [-1, 1] (the simulator clips them).
 - ``value_network`` (trunk + ``value_head``) reads the trunk's inputs; writes the trunk's
   outputs and ``state_value`` [B, 1].
 - ``baseline_network`` (trunk + ``baseline_head``) reads the trunk's inputs and ``("agents",
@@ -48,13 +50,13 @@ from typing import Any
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.envs import TensorDictPrimer
-from torchrl.modules import ProbabilisticActor
+from torchrl.modules import IndependentNormal, ProbabilisticActor
 
 from terrashift_rl.modules import keys
 from terrashift_rl.modules.config import TerraShiftModelConfig
 from terrashift_rl.modules.critics import CentralValueHead, CounterfactualBaselineHead
 from terrashift_rl.modules.distributions import ScaledBeta
-from terrashift_rl.modules.policy import BetaPolicyHead
+from terrashift_rl.modules.policy import BetaPolicyHead, GaussianPolicyHead
 from terrashift_rl.modules.trunk import TerraShiftTrunk
 
 __all__ = ["TerraShiftNetworks", "make_terrashift_networks"]
@@ -69,7 +71,8 @@ class TerraShiftNetworks(nn.Module):
 
     Attributes:
         trunk: the shared :class:`TerraShiftTrunk`.
-        policy_head: writes the Beta concentrations from the embedding.
+        policy_head: writes the Beta concentrations (or the Gaussian's mean and spread) from
+            the embedding.
         value_head: writes ``state_value`` from the embedding.
         baseline_head: writes ``("agents", "baseline")`` from the embedding and actions.
         config: the sizes the networks were built with (what further heads are sized by, e.g.
@@ -91,19 +94,26 @@ class TerraShiftNetworks(nn.Module):
         self.policy_head = policy_head
         self.value_head = value_head
         self.baseline_head = baseline_head
-        span = 1.0 if config is None else config.action_range
-        actor = ProbabilisticActor(
-            TensorDictSequential(trunk, policy_head),
-            in_keys={
+        if config is not None and config.distribution == "normal":
+            in_keys = {"loc": keys.NORMAL_LOC, "scale": keys.NORMAL_SCALE}
+            distribution_class, distribution_kwargs = IndependentNormal, {}
+        else:
+            span = 1.0 if config is None else config.action_range
+            in_keys = {
                 "concentration1": keys.BETA_CONCENTRATION1,
                 "concentration0": keys.BETA_CONCENTRATION0,
-            },
+            }
+            distribution_class = ScaledBeta
+            distribution_kwargs = {"low": -span, "high": span}
+        actor = ProbabilisticActor(
+            TensorDictSequential(trunk, policy_head),
+            in_keys=in_keys,
             out_keys=[keys.ACTION],
-            distribution_class=ScaledBeta,
-            # The concentrations are positive by construction; checking them (and every
-            # log-prob's argument) would cost a host synchronisation per call and forbid
-            # capturing acting and updating as CUDA graphs.
-            distribution_kwargs={"low": -span, "high": span, "validate_args": False},
+            distribution_class=distribution_class,
+            # The parameters are valid by construction; checking them (and every log-prob's
+            # argument) would cost a host synchronisation per call and forbid capturing acting
+            # and updating as CUDA graphs.
+            distribution_kwargs={**distribution_kwargs, "validate_args": False},
             return_log_prob=True,
             log_prob_key=keys.ACTION_LOG_PROB,
         )
@@ -121,7 +131,8 @@ class TerraShiftNetworks(nn.Module):
 
     @property
     def actor(self) -> ProbabilisticActor:
-        """Trunk + policy head + :class:`ScaledBeta` sampling; writes action and log-prob."""
+        """Trunk + policy head + :class:`ScaledBeta` (or ``IndependentNormal``) sampling; writes
+        action and log-prob."""
         return self._compositions[0]
 
     @property
@@ -204,10 +215,12 @@ def make_terrashift_networks(
     """
     config = TerraShiftModelConfig() if config is None else config
     trunk = TerraShiftTrunk(config)
+    if config.distribution == "normal":
+        head, head_keys = GaussianPolicyHead, [keys.NORMAL_LOC, keys.NORMAL_SCALE]
+    else:
+        head, head_keys = BetaPolicyHead, [keys.BETA_CONCENTRATION1, keys.BETA_CONCENTRATION0]
     policy_head = TensorDictModule(
-        BetaPolicyHead(config, action_dim=action_dim),
-        in_keys=[keys.AGENT_EMBEDDING],
-        out_keys=[keys.BETA_CONCENTRATION1, keys.BETA_CONCENTRATION0],
+        head(config, action_dim=action_dim), in_keys=[keys.AGENT_EMBEDDING], out_keys=head_keys
     )
     value_head = TensorDictModule(
         CentralValueHead(config),

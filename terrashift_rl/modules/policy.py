@@ -1,6 +1,9 @@
-"""The policy head shared by all agents: embedding -> Beta concentrations per action dim."""
+"""The policy heads shared by all agents: embedding -> Beta concentrations, or Gaussian means
+and a learned spread, per action dim."""
 
 from __future__ import annotations
+
+import math
 
 import torch
 import torch.nn.functional as F
@@ -9,7 +12,7 @@ from torch import Tensor, nn
 from terrashift_rl.modules.config import TerraShiftModelConfig
 from terrashift_rl.modules.layers import UpdateDropout
 
-__all__ = ["BetaPolicyHead"]
+__all__ = ["BetaPolicyHead", "GaussianPolicyHead"]
 
 
 class BetaPolicyHead(nn.Module):
@@ -33,20 +36,9 @@ class BetaPolicyHead(nn.Module):
 
     def __init__(self, config: TerraShiftModelConfig, *, action_dim: int) -> None:
         super().__init__()
-        hidden = config.policy_hidden_dim
-        self.mlp = nn.Sequential(
-            nn.Linear(config.embed_dim, hidden),
-            nn.GELU(),
-            UpdateDropout(config.dropout),
-            nn.Linear(hidden, hidden),
-            nn.GELU(),
-        )
-        self.alpha_head = nn.Linear(hidden, action_dim)
-        self.beta_head = nn.Linear(hidden, action_dim)
-        with torch.no_grad():
-            for head in (self.alpha_head, self.beta_head):
-                head.weight.mul_(config.policy_output_gain)
-                head.bias.mul_(config.policy_output_gain)
+        self.mlp = _policy_mlp(config)
+        self.alpha_head = _output_layer(config, action_dim)
+        self.beta_head = _output_layer(config, action_dim)
         self.min_concentration = config.min_concentration
 
     def forward(self, embedding: Tensor) -> tuple[Tensor, Tensor]:
@@ -56,3 +48,55 @@ class BetaPolicyHead(nn.Module):
         concentration1 = self.min_concentration + F.softplus(self.alpha_head(features).float())
         concentration0 = self.min_concentration + F.softplus(self.beta_head(features).float())
         return concentration1, concentration0
+
+
+class GaussianPolicyHead(nn.Module):
+    """The same MLP as :class:`BetaPolicyHead` with one mean head, and a state-independent
+    standard deviation per action dim (``exp`` of a learned parameter, as in RSL-RL).
+
+    The mean is unbounded: the simulator clips actions to the actuators' [-1, 1], so a mean
+    beyond an end acts as that end whatever the spread. The mean layer starts from PyTorch's
+    default initialisation times ``config.policy_output_gain``; the spread from
+    ``config.initial_std``.
+
+    Args:
+        config: network sizes.
+        action_dim: action dims per agent.
+
+    Examples:
+        >>> import torch
+        >>> head = GaussianPolicyHead(TerraShiftModelConfig.small(), action_dim=6)
+        >>> loc, scale = head(torch.randn(2, 8, 32))
+        >>> loc.shape, scale.shape, round(scale[0, 0, 0].item(), 4)
+        (torch.Size([2, 8, 6]), torch.Size([2, 8, 6]), 0.5)
+    """
+
+    def __init__(self, config: TerraShiftModelConfig, *, action_dim: int) -> None:
+        super().__init__()
+        self.mlp = _policy_mlp(config)
+        self.mean_head = _output_layer(config, action_dim)
+        self.log_std = nn.Parameter(torch.full((action_dim,), math.log(config.initial_std)))
+
+    def forward(self, embedding: Tensor) -> tuple[Tensor, Tensor]:
+        """Map agent embeddings [..., d] to (mean, standard deviation), each [..., A]."""
+        loc = self.mean_head(self.mlp(embedding)).float()
+        return loc, self.log_std.exp().expand_as(loc)
+
+
+def _policy_mlp(config: TerraShiftModelConfig) -> nn.Sequential:
+    hidden = config.policy_hidden_dim
+    return nn.Sequential(
+        nn.Linear(config.embed_dim, hidden),
+        nn.GELU(),
+        UpdateDropout(config.dropout),
+        nn.Linear(hidden, hidden),
+        nn.GELU(),
+    )
+
+
+def _output_layer(config: TerraShiftModelConfig, action_dim: int) -> nn.Linear:
+    layer = nn.Linear(config.policy_hidden_dim, action_dim)
+    with torch.no_grad():
+        layer.weight.mul_(config.policy_output_gain)
+        layer.bias.mul_(config.policy_output_gain)
+    return layer

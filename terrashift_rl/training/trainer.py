@@ -47,8 +47,8 @@ from terrashift_rl.training.graphs import CudaGraphed
 from terrashift_rl.training.schedules import LinearSchedule
 
 # Collection writes these as by-products of acting; every pass of the update recomputes them
-# with the current parameters, so the batch does not keep them. (It keeps the Beta
-# concentrations, 12 numbers per agent-step, for `concentration_metrics`.)
+# with the current parameters, so the batch does not keep them. (It keeps the distribution's
+# parameters, 12 numbers per agent-step, for `concentration_metrics`.)
 _RECOMPUTED_KEYS = (keys.AGENT_EMBEDDING,)
 
 LR_SCHEDULES = ("linear", "adaptive")
@@ -755,16 +755,20 @@ def episode_metrics(data: TensorDictBase) -> dict[str, float]:
 
 
 def concentration_metrics(data: TensorDictBase) -> dict[str, float]:
-    """Per action dimension, ``concentration_<name>``: the median over the collected agent-steps
-    of the policy's Beta concentration alpha + beta: how sure the policy is of that action (a
-    policy whose amplitude grows more concentrated than its velocities tends not to steer)."""
-    total = data.get(keys.BETA_CONCENTRATION1) + data.get(keys.BETA_CONCENTRATION0)
+    """How sure the policy is of each action, per action dimension: for a Beta policy
+    ``concentration_<name>``, the median over the collected agent-steps of alpha + beta (a
+    policy whose amplitude grows more concentrated than its velocities tends not to steer);
+    for a Gaussian one (``model.distribution=normal``) ``action_std_<name>``, its standard
+    deviation, the same in every state."""
+    if keys.NORMAL_SCALE in data.keys(include_nested=True):
+        name, spread = "action_std", data.get(keys.NORMAL_SCALE)
+    else:
+        name = "concentration"
+        spread = data.get(keys.BETA_CONCENTRATION1) + data.get(keys.BETA_CONCENTRATION0)
     # the lower median through a sort: median(dim) has no deterministic CUDA implementation
-    ordered = total.float().flatten(0, -2).sort(dim=0).values
+    ordered = spread.float().flatten(0, -2).sort(dim=0).values
     medians = ordered[(len(ordered) - 1) // 2].tolist()
-    return {
-        f"concentration_{name}": value for name, value in zip(ACTION_NAMES, medians, strict=True)
-    }
+    return {f"{name}_{action}": value for action, value in zip(ACTION_NAMES, medians, strict=True)}
 
 
 def iterate_until(
