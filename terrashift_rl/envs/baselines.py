@@ -106,7 +106,9 @@ class ScriptedHeuristicPolicy:
     error divided by the change one decision of full action produces (``velocity_gain *
     wave_step * action_repeat``), clipped to [-1, 1]: a proportional velocity loop on top of the
     position loop, that is, PD on the position. With ``target`` actions it is ``v*`` itself
-    (over the speed limit), and the simulator's rate-limited tracking closes the loop.
+    (over the speed limit), and the simulator's rate-limited tracking closes the loop; with
+    ``position`` actions it is the point ``v* / position_gain`` (the scene's servo gain) from
+    the wavelet, towards which the simulator's servo aims that same velocity.
 
     **Shape.** The same rule drives the other parameters to set points: amplitude towards
     ``amplitude * max_amplitude`` once the wavelet is within ``engage_distance`` cells of its
@@ -244,6 +246,11 @@ class ScriptedHeuristicPolicy:
             turn = -spin / (cfg.angular_velocity_gain * per_decision)
             grow = (amplitude_target - amplitude) / (cfg.amplitude_gain * per_decision)
             widen = (self.sigma - widths) / (cfg.sigma_gain * per_decision)
+            if cfg.action_mode == "position":
+                # the point whose offset the simulator's servo turns into that same velocity
+                aim = position + desired / cfg.position_gain
+                aim = aim - g * torch.floor(aim / g) if cfg.wrap_edges else aim.clamp(0.0, g - 1)
+                move = 2.0 * aim / g - 1.0
 
         action = torch.cat([move, turn.unsqueeze(-1), grow.unsqueeze(-1), widen], dim=-1)
         action = action.clamp(-1.0, 1.0).to(torch.float32)

@@ -1,5 +1,5 @@
-"""TerraShift networks as TensorDict modules: shared trunk, Beta (or Gaussian) actor, MA-POCA critics, and
-IPPO's per-agent value.
+"""TerraShift networks as TensorDict modules: shared trunk, Beta (or Gaussian) actor, MA-POCA
+critics, and IPPO's per-agent value.
 
 For another environment with flat per-agent observations, :class:`CentralValue` and
 :class:`CounterfactualBaseline` are MA-POCA's critics built from plain sizes. For TerraShift,

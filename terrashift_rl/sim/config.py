@@ -16,8 +16,9 @@ from typing import Any
 COLUMN_SHAPES = ("ellipsoid", "box", "smooth")
 """Column shapes: ellipsoids (the paper's), boxes (classic pins), a smooth interpolated surface."""
 
-ACTION_MODES = ("delta", "target")
-"""What an action sets: the change of each wavelet quantity (the paper's), or its target value."""
+ACTION_MODES = ("delta", "target", "position")
+"""What an action sets: the change of each wavelet quantity (the paper's), its target value, or
+the wavelet's target position (and the change of the rest)."""
 
 
 @dataclass
@@ -57,12 +58,17 @@ class TerraShiftConfig:
     num_agents: int = 8
     """Wave agents K (one Gaussian wavelet each) [count], >= 1."""
     action_mode: str = "delta"
-    """What an action in [-1, 1] sets, one of ``delta`` or ``target``. ``delta`` (the paper's):
-    the change of each wavelet quantity per physics tick, ``gain * wave_step * action``.
-    ``target``: the value each quantity moves towards, mapped from [-1, 1] onto its range
-    (velocities, spin and amplitude onto +-their limits, widths onto [sigma_min, sigma_max]);
-    each tick it moves by at most a full ``delta`` action's change, so the actuators' rate
-    limits are the same in both modes."""
+    """What an action in [-1, 1] sets, one of ``delta``, ``target`` or ``position``. ``delta``
+    (the paper's): the change of each wavelet quantity per physics tick,
+    ``gain * wave_step * action``. ``target``: the value each quantity moves towards, mapped
+    from [-1, 1] onto its range (velocities, spin and amplitude onto +-their limits, widths onto
+    [sigma_min, sigma_max]); each tick it moves by at most a full ``delta`` action's change, so
+    the actuators' rate limits are the same in every mode. ``position``: the first two dims
+    set where the wavelet should go, in the coordinates of the agent observation (cell
+    ``(a + 1) * G / 2``), and its velocity moves, as with ``target``, towards
+    ``position_gain`` times the offset to there (the short way round a wrapping grid), clipped
+    to the speed limit: a position servo, as PD targets are for robot joints. The other four
+    dims are deltas, as with ``delta`` (random set points would hold the shape still)."""
     wave_step: float = 0.1
     """Integration step of the wavelet parameters per physics tick [dimensionless], > 0."""
     velocity_gain: float = 1.0
@@ -73,6 +79,9 @@ class TerraShiftConfig:
     """Wavelet amplitude change per unit action per wave step [m], > 0."""
     sigma_gain: float = 0.5
     """Wavelet width change per unit action per wave step [cells], > 0."""
+    position_gain: float = 1.0
+    """With ``action_mode="position"``, the velocity aimed at per cell of offset from the
+    wavelet to its target position [1 / wave step], > 0."""
     max_velocity: float = 1.0
     """Wavelet speed limit per axis [cells / wave step], > 0."""
     max_angular_velocity: float = 0.785
@@ -240,6 +249,7 @@ class TerraShiftConfig:
             "max_column_height",
             "wave_step",
             "velocity_gain",
+            "position_gain",
             "angular_velocity_gain",
             "amplitude_gain",
             "sigma_gain",

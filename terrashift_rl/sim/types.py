@@ -16,6 +16,7 @@ from terrashift_rl.sim.config import ACTION_MODES, COLUMN_SHAPES, TerraShiftConf
 SHAPE_ELLIPSOID = wp.constant(COLUMN_SHAPES.index("ellipsoid"))
 SHAPE_BOX = wp.constant(COLUMN_SHAPES.index("box"))
 ACTION_TARGET = wp.constant(ACTION_MODES.index("target"))
+ACTION_POSITION = wp.constant(ACTION_MODES.index("position"))
 
 OBJECT_FEATURES = 9
 """Per-object observation: position (3), goal position (3), velocity (3)."""
@@ -23,7 +24,8 @@ AGENT_FEATURES = 9
 """Per-agent observation: x, y, theta, amplitude, sigma_x, sigma_y, v_x, v_y, omega."""
 ACTION_NAMES = ("v_x", "v_y", "omega", "amplitude", "sigma_x", "sigma_y")
 """Per-agent action, each in [-1, 1]: the change or the target of each of these wavelet
-quantities (``TerraShiftConfig.action_mode``)."""
+quantities, or with ``position`` actions the target position in place of the velocities
+(``TerraShiftConfig.action_mode``)."""
 ACTION_DIM = len(ACTION_NAMES)
 
 
@@ -47,6 +49,7 @@ class Model:
     action_mode: int
     wave_step: float
     velocity_gain: float
+    position_gain: float
     angular_velocity_gain: float
     amplitude_gain: float
     sigma_gain: float
@@ -179,6 +182,7 @@ def build_model(config: TerraShiftConfig) -> Model:
     m.action_mode = ACTION_MODES.index(config.action_mode)
     m.wave_step = config.wave_step
     m.velocity_gain = config.velocity_gain
+    m.position_gain = config.position_gain
     m.angular_velocity_gain = config.angular_velocity_gain
     m.amplitude_gain = config.amplitude_gain
     m.sigma_gain = config.sigma_gain

@@ -3,7 +3,9 @@
 Each agent owns one Gaussian wavelet with state (x, y, theta, A, sigma_x, sigma_y, v_x, v_y,
 omega). An action in [-1, 1]^6 changes the *rates* (v_x, v_y, omega) and the shape (A, sigma_x,
 sigma_y) by a gain times the wave step each physics tick, or, with ``action_mode="target"``,
-sets the values they move towards at that same limited rate; rates are clamped before they
+sets the values they move towards at that same limited rate, or, with ``"position"``, sets
+where the wavelet goes (its velocity moves, at that rate, towards one that points there) and
+changes the rest as ``delta`` does; rates are clamped before they
 move the wavelet, so the speed limits hold exactly. Heights are the clipped sum of all wavelets at
 integer cell positions, with offsets wrapped into [-G/2, G/2) when the grid is a torus.
 """
@@ -12,7 +14,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from terrashift_rl.sim.types import ACTION_TARGET, Model
+from terrashift_rl.sim.types import ACTION_POSITION, ACTION_TARGET, Model
 
 wp.set_module_options({"enable_backward": False})  # nothing differentiates through it
 
@@ -68,9 +70,10 @@ def update_agents(
     d_omega = a_omega
     d_amplitude = a_amplitude
     d_sigma = a_sigma
+    g = float(model.grid_size)
+    v_gain = model.velocity_gain * step
     if model.action_mode == ACTION_TARGET:
         # the change towards each target, in units of a full delta action's change per tick
-        v_gain = model.velocity_gain * step
         d_velocity = wp.vec2(
             wp.clamp((a[0] * vmax - v0[0]) / v_gain, -1.0, 1.0),
             wp.clamp((a[1] * vmax - v0[1]) / v_gain, -1.0, 1.0),
@@ -89,8 +92,19 @@ def update_agents(
             wp.clamp((s_target[0] - s0[0]) / s_gain, -1.0, 1.0),
             wp.clamp((s_target[1] - s0[1]) / s_gain, -1.0, 1.0),
         )
+    elif model.action_mode == ACTION_POSITION:
+        # a servo: the velocity moves towards one that points to the target position (the short
+        # way round a wrapping grid), at most a full delta action's change per tick
+        offset = (a + wp.vec2(1.0, 1.0)) * (0.5 * g) - position[e, k]
+        if model.wrap_edges != 0:
+            offset = wp.vec2(wrap_offset(offset[0], g, 1.0 / g), wrap_offset(offset[1], g, 1.0 / g))
+        aim = model.position_gain * offset
+        d_velocity = wp.vec2(
+            wp.clamp((wp.clamp(aim[0], -vmax, vmax) - v0[0]) / v_gain, -1.0, 1.0),
+            wp.clamp((wp.clamp(aim[1], -vmax, vmax) - v0[1]) / v_gain, -1.0, 1.0),
+        )
 
-    v = v0 + model.velocity_gain * step * d_velocity
+    v = v0 + v_gain * d_velocity
     v = wp.vec2(wp.clamp(v[0], -vmax, vmax), wp.clamp(v[1], -vmax, vmax))
     w = wp.clamp(w0 + model.angular_velocity_gain * step * d_omega, -omax, omax)
     amp = wp.clamp(amp0 + model.amplitude_gain * step * d_amplitude, -amax, amax)
@@ -100,7 +114,6 @@ def update_agents(
         wp.clamp(s[1], model.sigma_min, model.sigma_max),
     )
 
-    g = float(model.grid_size)
     p = position[e, k] + step * v
     if model.wrap_edges != 0:
         p = wp.vec2(p[0] - g * wp.floor(p[0] / g), p[1] - g * wp.floor(p[1] / g))
