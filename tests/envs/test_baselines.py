@@ -194,6 +194,28 @@ def test_heuristic_with_target_actions_sets_its_set_points():
     assert abs(at_target[VX]) < 1e-5 and at_target[AMP] == 1.0
 
 
+def test_heuristic_with_position_actions_aims_where_the_servo_gives_its_velocity():
+    cfg = one_object_config().replace(action_mode="position", position_gain=2.0)
+    policy = ScriptedHeuristicPolicy(cfg)
+    g = cfg.grid_size
+    sphere, goal = (7.0, 7.0), (12.0, 7.0)  # target cell x = 5
+    # 0.3 cells short of the target: desired velocity 0.3 (the heuristic's gain of 1), which
+    # the servo (gain 2) aims at from 0.15 cells ahead, at x = 4.85
+    near = policy(posed_scene([(4.7, 7.0)], [sphere], [goal], cfg))[GROUP, "action"][0, 0]
+    assert near[VX] == pytest.approx(2 * 4.85 / g - 1, abs=1e-5)
+    assert near[VY] == pytest.approx(2 * 7.0 / g - 1, abs=1e-5)
+    # far away: full speed (1) the short way round, through the edge: aim 0.5 cells past x = 14
+    far = policy(posed_scene([(14.0, 7.0)], [(2.0, 7.0)], [(6.0, 7.0)], cfg))
+    assert far[GROUP, "action"][0, 0, VX] == pytest.approx(2 * 14.5 / g - 1, abs=1e-5)
+    # the shape dims are deltas, as with delta actions: raise the bump on the target
+    at_target = policy(posed_scene([(5.0, 7.0)], [sphere], [goal], cfg))[GROUP, "action"][0, 0]
+    assert at_target[VX] == pytest.approx(2 * 5.0 / g - 1, abs=1e-5) and at_target[AMP] == 1.0
+    # no sphere: every wavelet stays where it is
+    idle = policy(posed_scene([(3.0, 9.0)], [None], [goal], cfg))[GROUP, "action"][0, 0]
+    assert idle[VX] == pytest.approx(2 * 3.0 / g - 1, abs=1e-5)
+    assert idle[VY] == pytest.approx(2 * 9.0 / g - 1, abs=1e-5)
+
+
 def test_heuristic_rejects_bad_parameters():
     with pytest.raises(ValueError, match="amplitude"):
         ScriptedHeuristicPolicy(CFG, amplitude=0.0)

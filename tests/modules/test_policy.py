@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 from tensordict.nn import InteractionType, set_interaction_type
-from torch.distributions import AffineTransform, Beta, Independent, TransformedDistribution
+from torch.distributions import AffineTransform, Beta, Independent, Normal, TransformedDistribution
 
 from terrashift_rl.modules import ScaledBeta, keys, make_terrashift_networks
 from terrashift_rl.sim.types import ACTION_DIM
@@ -160,3 +160,37 @@ def test_action_range_widens_the_policys_support_about_the_same_beta(small_confi
     torch.testing.assert_close(actions[2.0], 2.0 * actions[1.0])
     with pytest.raises(ValueError, match="action_range must be >= 1"):
         dataclasses.replace(small_config, action_range=0.5)
+
+
+def test_gaussian_policy_samples_about_its_mean_with_one_learned_spread(small_config, make_batch):
+    torch.manual_seed(0)
+    config = dataclasses.replace(small_config, distribution="normal", initial_std=0.3)
+    networks = make_terrashift_networks(config, action_dim=ACTION_DIM)
+    data = make_batch((5,), num_agents=8)
+    with torch.no_grad():
+        networks.actor(data)
+    loc, scale = data[keys.NORMAL_LOC], data[keys.NORMAL_SCALE]
+    assert loc.shape == scale.shape == data[keys.ACTION].shape == (5, 8, 6)
+    torch.testing.assert_close(scale, torch.full_like(scale, 0.3))  # the same in every state
+    expected = Independent(Normal(loc, scale), 1).log_prob(data[keys.ACTION])
+    torch.testing.assert_close(data[keys.ACTION_LOG_PROB], expected)
+    with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
+        deterministic = networks.actor(data.clone())
+    torch.testing.assert_close(deterministic[keys.ACTION], deterministic[keys.NORMAL_LOC])
+    # the spread is one parameter per action dim, which the loss trains
+    networks.actor.get_dist(data.clone()).log_prob(data[keys.ACTION]).sum().backward()
+    log_std = networks.policy_head.module.log_std
+    assert log_std.shape == (6,) and (log_std.grad != 0).all()
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("distribution", "gamma", "distribution must be one of"),
+        ("initial_std", 0.0, "initial_std must be a finite number > 0"),
+        ("initial_std", math.inf, "initial_std must be a finite number > 0"),
+    ],
+)
+def test_bad_distribution_settings_are_refused(small_config, field, value, message):
+    with pytest.raises(ValueError, match=message):
+        dataclasses.replace(small_config, **{field: value})

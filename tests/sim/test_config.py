@@ -30,6 +30,7 @@ def test_presets_hold_the_paper_settings():
         ({"sigma_min": 3.0}, r"sigma_min \(3.0\) must be <= sigma_max"),
         ({"column_shape": "cone"}, "column_shape must be one of"),
         ({"action_mode": "force"}, "action_mode must be one of"),
+        ({"position_gain": 0.0}, "position_gain must be in"),
         ({"restitution": 0.0}, "restitution must be in"),
         ({"friction": -0.1}, "friction must be in"),
         ({"sphere_radius": float("nan")}, "sphere_radius must be a finite number"),

@@ -186,6 +186,8 @@ def reference_tick(state: dict[str, np.ndarray], action: np.ndarray, cfg: TerraS
     h = cfg.wave_step
     if cfg.action_mode == "target":
         a = changes_towards_targets(state, a, cfg)
+    elif cfg.action_mode == "position":
+        a = np.concatenate([changes_towards_position(state, a, cfg), a[..., 2:]], -1)
     g = cfg.grid_size
     v = np.clip(
         state["agent_velocity"] + cfg.velocity_gain * h * a[..., 0:2],
@@ -238,6 +240,17 @@ def changes_towards_targets(state: dict[str, np.ndarray], a: np.ndarray, cfg: Te
     )
 
 
+def changes_towards_position(state: dict[str, np.ndarray], a: np.ndarray, cfg: TerraShiftConfig):
+    """The velocity delta action of ``position`` actions: towards ``position_gain`` times the
+    offset to cell ``(a + 1) G / 2`` (the short way on a torus), clipped to the speed limit."""
+    g = cfg.grid_size
+    offset = (a[..., 0:2] + 1.0) * 0.5 * g - state["agent_position"]
+    if cfg.wrap_edges:
+        offset = offset - g * np.floor(offset / g + 0.5)
+    aim = np.clip(cfg.position_gain * offset, -cfg.max_velocity, cfg.max_velocity)
+    return np.clip((aim - state["agent_velocity"]) / (cfg.velocity_gain * cfg.wave_step), -1, 1)
+
+
 def circular_error(actual: np.ndarray, expected: np.ndarray, period: float) -> np.ndarray:
     """|actual - expected| on a circle, so values just either side of the wrap compare equal."""
     d = actual - expected
@@ -245,7 +258,8 @@ def circular_error(actual: np.ndarray, expected: np.ndarray, period: float) -> n
 
 
 @pytest.mark.parametrize(
-    ("wrap_edges", "action_mode"), [(True, "delta"), (False, "delta"), (True, "target")]
+    ("wrap_edges", "action_mode"),
+    [(True, "delta"), (False, "delta"), (True, "target"), (True, "position"), (False, "position")],
 )
 def test_parameter_dynamics_match_reference_over_several_decisions(wrap_edges, action_mode):
     sim = make_sim(
@@ -282,7 +296,7 @@ def test_parameter_dynamics_match_reference_over_several_decisions(wrap_edges, a
         assert (actual["agent_position"] <= cfg.grid_size).all()
         assert (actual["agent_angle"] >= 0).all()
         assert (actual["agent_angle"] <= 2 * math.pi).all()
-    if action_mode == "target":  # random targets rarely hold long enough to reach a limit
+    if action_mode != "delta":  # random targets rarely hold long enough to reach a limit
         return
     # the run exercised the limits
     assert np.isclose(np.abs(state["agent_velocity"]), cfg.max_velocity).any()
@@ -336,6 +350,36 @@ def test_target_actions_reach_their_targets_at_the_delta_rate_and_hold_them():
     assert sim.view("agent_sigma")[0, 0].tolist() == pytest.approx(
         [cfg.sigma_min, cfg.sigma_max], abs=1e-6
     )
+
+
+@pytest.mark.parametrize(
+    ("start", "target", "first_step"),
+    [(5.0, 12.0, +1), (13.5, 1.0, +1), (1.0, 13.5, -1)],  # the last two the short way round
+)
+def test_position_actions_bring_the_wavelet_to_its_target_within_the_speed_limit(
+    start, target, first_step
+):
+    sim = make_sim(num_envs=1, num_agents=1, action_repeat=1, action_mode="position")
+    cfg = sim.config
+    g, h = cfg.grid_size, cfg.wave_step
+    set_agents(sim, [[[start, 6.0]]], [[0.0]], [[0.0]], [[[1.0, 1.0]]])
+    # target cell (target, 6); the shape dims stay deltas: amplitude up at full rate
+    action = torch.tensor([[[2.0 * target / g - 1.0, 2.0 * 6.0 / g - 1.0, 0.0, 1.0, 0.0, 0.0]]])
+    sim.step(action)  # from rest: a full delta action's change of velocity towards the target
+    assert sim.view("agent_velocity")[0, 0].tolist() == pytest.approx([first_step * h, 0.0])
+    assert sim.view("agent_amplitude")[0, 0].item() == pytest.approx(cfg.amplitude_gain * h)
+    speeds = []
+    for _ in range(300):
+        sim.step(action)
+        speeds.append(sim.view("agent_velocity")[0, 0].abs().max().item())
+    assert max(speeds) <= cfg.max_velocity + 1e-6
+    distance = abs(target - start) if first_step * (target - start) > 0 else g - abs(target - start)
+    if distance > 2.0:  # far enough to reach the speed limit on the way
+        assert max(speeds) == pytest.approx(cfg.max_velocity)
+    x, y = sim.view("agent_position")[0, 0].tolist()
+    assert circular_error(np.array(x), np.array(target), g) < 1e-3 and y == pytest.approx(6.0)
+    assert speeds[-1] < 1e-3  # at rest on its target
+    assert sim.view("agent_amplitude")[0, 0].item() == pytest.approx(cfg.max_amplitude)
 
 
 def test_actions_beyond_the_unit_box_act_as_their_clipped_values():

@@ -40,10 +40,13 @@ CUDA = torch.device("cuda")
 MODEL = dataclasses.replace(TerraShiftModelConfig.small(), dropout=0.0)
 
 
-def make_trainer(*, seed: int = 0, **train) -> MAPOCATrainer:
-    """A trainer of the small network on three environments of ``ENV``."""
+def make_trainer(*, seed: int = 0, model: dict | None = None, **train) -> MAPOCATrainer:
+    """A trainer of the small network (with ``model`` overrides) on three environments of
+    ``ENV``."""
     torch.manual_seed(seed)
-    networks = make_terrashift_networks(TerraShiftModelConfig.small())
+    networks = make_terrashift_networks(
+        dataclasses.replace(TerraShiftModelConfig.small(), **(model or {}))
+    )
     config = TrainConfig(num_envs=3, steps_per_iteration=8, minibatches=1, **train)
     env = make_training_env(ENV, networks, num_envs=3, device=torch.device("cpu"), seed=seed)
     return MAPOCATrainer(env, networks, config)
@@ -80,6 +83,28 @@ def test_concentration_metrics_are_the_median_alpha_plus_beta_of_each_action():
     logged = make_trainer().train_iteration()  # a trainer logs them every iteration
     floor = 2 * TerraShiftModelConfig.small().min_concentration
     assert all(logged[key] > floor for key in metrics)
+
+
+def test_a_gaussian_policy_logs_its_spread_in_place_of_concentrations():
+    # two agent-steps whose standard deviations are (d + 1) / 10 and (d + 1) / 5 in action d:
+    # the lower median is the first
+    scale = torch.arange(1.0, 7.0) / 10 * torch.tensor([[1.0], [2.0]])
+    data = TensorDict(batch_size=[1, 2])
+    data.set(keys.NORMAL_LOC, torch.zeros(1, 2, 1, 6))
+    data.set(keys.NORMAL_SCALE, scale[None, :, None])
+    metrics = concentration_metrics(data)
+    assert list(metrics) == [f"action_std_{name}" for name in ACTION_NAMES]
+    assert metrics["action_std_v_x"] == pytest.approx(0.1)
+    assert metrics["action_std_sigma_y"] == pytest.approx(0.6)
+
+    trainer = make_trainer(model={"distribution": "normal", "initial_std": 0.4})
+    first, second = trainer.train_iteration(), trainer.train_iteration()
+    assert not any(key.startswith("concentration_") for key in first)
+    # the first batch was collected at the initial spread; the updates then moved it a little
+    assert [first[key] for key in metrics] == pytest.approx([0.4] * 6)
+    moved = [abs(second[key] - 0.4) for key in metrics]
+    assert all(0.0 < change < 0.05 for change in moved)
+    assert first["kl_approx"] > 0
 
 
 @pytest.mark.slow  # tens of seconds of CPU compilation with a cold inductor cache
