@@ -34,7 +34,7 @@ class TerraShiftEnv(EnvBase):
     ``"objects_mask"``                  [N, M] bool          True where the slot holds a sphere
     ``"episode_goals"``                 [N, 1] int64         goals reached since the reset
     ``"episode_out_of_bounds"``         [N, 1] int64         spheres lost since the reset
-    ``("agents", "action")``            [N, K, 6]            deltas in [-1, 1] (clipped)
+    ``("agents", "action")``            [N, K, 6]            deltas or targets in [-1, 1] (clipped)
     ``("agents", "reward")``            [N, K, 1]            the team reward, same for every agent
     ``done/terminated/truncated``       [N, 1], [N, K, 1]    at the root and under ``"agents"``
     ==================================  ===================  =======================================

@@ -5,9 +5,9 @@ omega). An action in [-1, 1]^6 changes the *rates* (v_x, v_y, omega) and the sha
 sigma_y) by a gain times the wave step each physics tick, or, with ``action_mode="target"``,
 sets the values they move towards at that same limited rate, or, with ``"position"``, sets
 where the wavelet goes (its velocity moves, at that rate, towards one that points there) and
-changes the rest as ``delta`` does; rates are clamped before they
-move the wavelet, so the speed limits hold exactly. Heights are the clipped sum of all wavelets at
-integer cell positions, with offsets wrapped into [-G/2, G/2) when the grid is a torus.
+changes the rest as ``delta`` does; rates are clamped before they move the wavelet, so the
+speed limits hold exactly. Heights are the clipped sum of all wavelets at integer cell
+positions, with offsets wrapped into [-G/2, G/2) when the grid is a torus.
 """
 
 from __future__ import annotations
