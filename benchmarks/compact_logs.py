@@ -76,6 +76,14 @@ def summarize(folder: Path, *, name: str, points: int, tail: int, **meta: str | 
     return summary
 
 
+def write_summary(summary: dict, out_dir: Path) -> Path:
+    """Writes ``summary`` as compact JSON to ``<out_dir>/<its run name>.json``."""
+    out = out_dir / f"{summary['run']}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(summary, separators=(",", ":")))
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", type=Path, help="CSVLogger scalars folders")
@@ -100,9 +108,7 @@ def main() -> None:
             device=args.device,
             date=args.date,
         )
-        out = args.out_dir / f"{name}.json"
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(summary, separators=(",", ":")))
+        out = write_summary(summary, args.out_dir)
         print(f"wrote {out} ({out.stat().st_size / 1e3:.0f} kB)")
 
 
