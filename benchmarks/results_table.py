@@ -7,9 +7,10 @@
 Each argument is ``label=summary,summary,...`` (split at the last ``=``): the run summaries
 (``compact_logs.py``) of one recipe's seeds. A row gives the mean ± standard deviation over
 them of the evaluation-mode metrics (``recipes/evaluate.py``'s ``evaluation`` file, or else the
-last periodic evaluation the run logged, ``eval_*``), the policy's Beta mean first and its
-samples in parentheses where evaluated, with the env-steps and the training reward per decision
-over the last 8 iterations. ``--baselines`` adds the random, zero and heuristic rows of an
+last periodic evaluation the run logged, ``eval_*``), the policy's mean action first and its
+samples in parentheses where evaluated (``eval_sampled_*``, logged with
+``run.eval_sampled=true``), with the env-steps and the training reward per decision over the
+last 8 iterations. ``--baselines`` adds the random, zero and heuristic rows of an
 ``evaluate_baselines`` file. ``--env-steps N`` compares runs of different lengths at one
 budget: each row then reads the periodic evaluation logged at N env-steps, and the training
 reward over the last 8 points logged up to N.
@@ -42,22 +43,30 @@ def spread(values: list[float], form: str) -> str:
 
 def scores(run: Path, at: int | None = None) -> dict[str, dict[str, float]]:
     """Evaluation-mode metrics of a run per policy kind (``deterministic``, ``stochastic``):
-    its evaluation file's, else its last periodic evaluation, or the one at ``at`` env-steps."""
+    its evaluation file's, else its last periodic evaluation, or the one at ``at`` env-steps
+    (``eval_*``, and ``eval_sampled_*`` where the run scored its samples too)."""
     evaluation = read_evaluations(run).get("evaluation")
     if evaluation is not None and at is None:
         return {kind: evaluation[kind] for kind in ("deterministic", "stochastic")}
-    logged = {
-        name: dict(zip(*read_series(run, f"eval_{name}"), strict=True)) for name, _ in METRICS
-    }
-    if not all(logged.values()):
+    result = {}
+    for kind, prefix in (("deterministic", "eval_"), ("stochastic", "eval_sampled_")):
+        logged = {
+            name: dict(zip(*read_series(run, f"{prefix}{name}"), strict=True))
+            for name, _ in METRICS
+        }
+        if not all(logged.values()):
+            continue
+        if at is None:
+            result[kind] = {name: list(values.values())[-1] for name, values in logged.items()}
+        elif at in logged["goal_fraction"]:
+            result[kind] = {name: values[at] for name, values in logged.items()}
+        else:
+            raise SystemExit(
+                f"{run} has no evaluation at {at} env-steps: {list(logged['goal_fraction'])}"
+            )
+    if "deterministic" not in result:
         raise SystemExit(f"{run} holds no evaluation-mode score")
-    if at is None:
-        return {"deterministic": {name: list(v.values())[-1] for name, v in logged.items()}}
-    if at not in logged["goal_fraction"]:
-        raise SystemExit(
-            f"{run} has no evaluation at {at} env-steps: {list(logged['goal_fraction'])}"
-        )
-    return {"deterministic": {name: values[at] for name, values in logged.items()}}
+    return result
 
 
 def row(label: str, runs: list[Path], at: int | None = None) -> list[str]:

@@ -196,12 +196,27 @@ def evaluate_baselines(
     return results
 
 
-def evaluate_periodically(env: EnvBase, actor: Callable, *, seed: int) -> dict[str, float]:
+def evaluate_periodically(
+    env: EnvBase, actor: Callable, *, seed: int, sampled: bool = False
+) -> dict[str, float]:
     """Scores ``actor``'s mean action (:func:`evaluate`) on the same scenes at every call:
     ``env`` is reseeded with ``seed`` first, so that the scores of one run's successive
     evaluations differ only by the policy. Returns :data:`HEADLINE`'s metrics, prefixed
-    ``eval_``; networks in the actor are left in eval mode (no dropout)."""
+    ``eval_``; networks in the actor are left in eval mode (no dropout).
+
+    With ``sampled``, the policy's sampled actions are scored too, on the same scenes, with
+    the metrics prefixed ``eval_sampled_``: they draw from torch's generator seeded with
+    ``seed`` inside a fork of it, so that training's random stream is left as it was."""
     env.set_seed(seed)
     actor.eval()
     metrics = evaluate(env, actor_policy(actor, ExplorationType.DETERMINISTIC), progress=False)
-    return {f"eval_{name}": metrics[name] for name in HEADLINE}
+    scores = {f"eval_{name}": metrics[name] for name in HEADLINE}
+    if sampled:
+        device = torch.device(env.device)
+        cuda = [device.index or 0] if device.type == "cuda" else []
+        with torch.random.fork_rng(devices=cuda):
+            torch.manual_seed(seed)
+            env.set_seed(seed)
+            metrics = evaluate(env, actor_policy(actor, ExplorationType.RANDOM), progress=False)
+        scores.update({f"eval_sampled_{name}": metrics[name] for name in HEADLINE})
+    return scores

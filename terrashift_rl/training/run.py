@@ -230,6 +230,7 @@ RUN_SETTINGS: dict[str, Rule] = {
     "run.eval_every": or_null(integer(1), "no evaluation"),
     "run.eval_episodes": integer(1),
     "run.eval_seed": integer(0),
+    "run.eval_sampled": BOOLEAN,
     "run.resume": or_null(TEXT, "a fresh start"),
     "run.pretrained": or_null(TEXT, "no pretrained weights"),
     "logger.kind": one_of("wandb", "csv", "tensorboard", "none"),
@@ -675,7 +676,9 @@ def run_training(cfg: DictConfig, *, run_dir: Path) -> Path:
     )
 
     def evaluate_now() -> dict[str, float]:
-        return evaluate_periodically(eval_env, networks.actor, seed=cfg.run.eval_seed)
+        return evaluate_periodically(
+            eval_env, networks.actor, seed=cfg.run.eval_seed, sampled=cfg.run.eval_sampled
+        )
 
     def save_last() -> None:
         state = checkpoint_state(trainer, configs, run_id, best)  # on every rank: a collective

@@ -140,3 +140,19 @@ def test_periodic_evaluation_scores_the_mean_action_on_the_same_scenes_each_time
     env.rollout(7, break_when_any_done=False)  # moves the environments' generator on
     assert evaluate_periodically(env, networks.actor, seed=5) == first  # same scenes, mean action
     assert evaluate_periodically(env, networks.actor, seed=6) != first  # other scenes
+
+
+def test_periodic_evaluation_scores_the_samples_too_without_touching_training_randomness():
+    scene = TerraShiftConfig(max_episode_steps=12, respawn=False)
+    networks = make_terrashift_networks(TerraShiftModelConfig.small())
+    env = make_training_env(scene, networks, num_envs=4, device=torch.device("cpu"), seed=5)
+    state = torch.get_rng_state()
+    first = evaluate_periodically(env, networks.actor, seed=5, sampled=True)
+    assert torch.equal(torch.get_rng_state(), state)  # training's stream goes on as it was
+    expected = [f"eval_{name}" for name in HEADLINE]
+    assert list(first) == expected + [f"eval_sampled_{name}" for name in HEADLINE]
+    assert {k: first[k] for k in expected} == evaluate_periodically(env, networks.actor, seed=5)
+    # the samples are seeded too: the same scores again, and not the mean action's
+    assert evaluate_periodically(env, networks.actor, seed=5, sampled=True) == first
+    sampled = [first[f"eval_sampled_{name}"] for name in HEADLINE]
+    assert sampled != [first[f"eval_{name}"] for name in HEADLINE]

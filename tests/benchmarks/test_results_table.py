@@ -1,0 +1,42 @@
+"""results_table.py: a run's periodic evaluations, of its mean action and of its samples."""
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
+
+from results_table import METRICS, row, scores  # noqa: E402
+
+
+def write_run(folder: Path, *, sampled: bool) -> Path:
+    """A CSVLogger folder: reward every iteration, evaluations at 100 and 200 env-steps (the
+    samples' scores a tenth above the mean action's)."""
+    folder.mkdir()
+    (folder / "reward_per_decision.csv").write_text("50,0.1\n100,0.2\n150,0.3\n200,0.4\n")
+    prefixes = {"eval_": 1.0, "eval_sampled_": 1.1} if sampled else {"eval_": 1.0}
+    for prefix, factor in prefixes.items():
+        for index, (name, _) in enumerate(METRICS):
+            values = [(index + 1) * step / 1000 * factor for step in (100, 200)]
+            (folder / f"{prefix}{name}.csv").write_text(f"100,{values[0]}\n200,{values[1]}\n")
+    return folder
+
+
+def test_sampled_periodic_evaluations_are_read_beside_the_mean_actions(tmp_path):
+    run = write_run(tmp_path / "both", sampled=True)
+    last = scores(run)
+    assert last["deterministic"]["goal_fraction"] == pytest.approx(0.2)
+    assert last["stochastic"]["goal_fraction"] == pytest.approx(0.22)
+    at = scores(run, at=100)
+    assert at["stochastic"]["success_rate"] == pytest.approx(0.22)
+    cells = row("recipe", [run, run], at=100)
+    assert cells[3] == "0.100 ± 0.000 (0.110 ± 0.000)"
+    with pytest.raises(SystemExit, match="no evaluation at 150"):
+        scores(run, at=150)
+
+
+def test_a_run_without_sampled_evaluations_shows_its_mean_actions_alone(tmp_path):
+    run = write_run(tmp_path / "mean", sampled=False)
+    assert list(scores(run)) == ["deterministic"]
+    assert row("recipe", [run], at=200)[3] == "0.200"
