@@ -213,7 +213,9 @@ def evaluate_periodically(
     scores = {f"eval_{name}": metrics[name] for name in HEADLINE}
     if sampled:
         device = torch.device(env.device)
-        cuda = [device.index or 0] if device.type == "cuda" else []
+        cuda = []
+        if device.type == "cuda":
+            cuda = [torch.cuda.current_device() if device.index is None else device.index]
         with torch.random.fork_rng(devices=cuda):
             torch.manual_seed(seed)
             env.set_seed(seed)
