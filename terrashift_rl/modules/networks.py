@@ -94,7 +94,8 @@ class TerraShiftNetworks(nn.Module):
         self.policy_head = policy_head
         self.value_head = value_head
         self.baseline_head = baseline_head
-        if config is not None and config.distribution == "normal":
+        # the distribution the head parameterises, read off what it writes
+        if keys.NORMAL_LOC in policy_head.out_keys:
             in_keys = {"loc": keys.NORMAL_LOC, "scale": keys.NORMAL_SCALE}
             distribution_class, distribution_kwargs = IndependentNormal, {}
         else:
