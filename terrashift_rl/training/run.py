@@ -686,6 +686,11 @@ def run_training(cfg: DictConfig, *, run_dir: Path) -> Path:
             save_checkpoint(state, last)
 
     goal_fraction = "-"  # the latest evaluation's goal fraction, for the progress bar
+    if eval_env and cfg.run.pretrained and resume is None:  # a finetune's zero-shot score
+        zero_shot = evaluate_now()
+        goal_fraction = f"{zero_shot['eval_goal_fraction']:.3f}"
+        progress.write(f"evaluation of the pretrained weights: {zero_shot}")
+        log_scalars(logger, zero_shot, trainer.env_steps)
     try:
         with StopRequest(progress) as stop:
             for metrics in iterate_until(

@@ -203,12 +203,17 @@ def test_smoke_train_resume_and_finetune(tmp_path):
         "env.grid_size=10",
         "env.num_agents=6",
         "model.policy_output_gain=0.5",  # initial weights, which the pretrained ones replace
+        "logger=csv",
         "hydra.run.dir=d",
         cwd=tmp_path,
     )
     assert finetune.returncode == 0, finetune.stderr
     d = load_checkpoint(tmp_path / "d/checkpoints/last.pt")
     assert d["env_config"]["num_agents"] == 6 and d["iteration"] == 2
+    # the pretrained weights' zero-shot score opens the curve, before any update
+    (logged,) = (tmp_path / "d/logs").glob("*/scalars/eval_goal_fraction.csv")
+    steps = [int(line.split(",")[0]) for line in logged.read_text().splitlines()]
+    assert steps[0] == 0 and steps[-1] == d["env_steps"]
 
     evaluation = run(
         "evaluate.py",
