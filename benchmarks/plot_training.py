@@ -13,6 +13,9 @@ there, any other folder by its name.
 
     python benchmarks/plot_training.py <runs> --out curves.png \
         --metrics reward_per_decision out_of_bounds_per_episode entropy kl_approx
+
+A run continued in parts (``run.resume``, ``train_seeds.py --resume``) is drawn as one line
+when its parts' summaries are joined with ``+``: ``<name>_seed0.json+<name>_seed0_part1.json``.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import argparse
 from pathlib import Path
 
 from common import read_series, run_label
+from matplotlib import colormaps
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
@@ -43,9 +47,17 @@ TITLES = {
 DEFAULT_METRICS = ("reward_per_decision", "success_rate", "env_steps_per_s")
 
 
+def joined_series(run: str, metric: str) -> tuple[list[float], list[float]]:
+    """``metric``'s env-steps and values over a run's parts (``a.json+b.json``), in order."""
+    series = [read_series(Path(part), metric) for part in run.split("+")]
+    return [s for steps, _ in series for s in steps], [v for _, values in series for v in values]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("runs", nargs="+", type=Path, help="run summaries or scalars folders")
+    parser.add_argument(
+        "runs", nargs="+", help="run summaries or scalars folders; a run's parts joined by +"
+    )
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument(
         "--reference",
@@ -66,15 +78,17 @@ def main() -> None:
     FigureCanvasAgg(figure)
     axes = figure.subplots(1, len(args.metrics), squeeze=False)[0]
     for ax, metric in zip(axes, args.metrics, strict=True):
+        if len(args.runs) > 10:  # past the default cycle's ten colours
+            ax.set_prop_cycle(color=colormaps["tab20"].colors)
         for run in args.runs:
-            steps, values = read_series(run, metric)
+            steps, values = joined_series(run, metric)
             if not steps:
                 parser.error(f"{run} has no {metric}")
             ax.plot(
                 [s / 1e6 for s in steps],
                 values,
                 marker="." if len(steps) < 10 else None,
-                label=run_label(run),
+                label=run_label(Path(run.split("+")[0])),
             )
         if metric == args.reference_metric and args.reference is not None:
             ax.axhline(args.reference, linestyle="--", color="grey", label=args.reference_label)

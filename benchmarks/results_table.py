@@ -11,9 +11,10 @@ last periodic evaluation the run logged, ``eval_*``), the policy's mean action f
 samples in parentheses where evaluated (``eval_sampled_*``, logged with
 ``run.eval_sampled=true``), with the env-steps and the training reward per decision over the
 last 8 iterations. ``--baselines`` adds the random, zero and heuristic rows of an
-``evaluate_baselines`` file. ``--env-steps N`` compares runs of different lengths at one
-budget: each row then reads the periodic evaluation logged at N env-steps, and the training
-reward over the last 8 points logged up to N.
+``evaluate_baselines`` file, or those of a ``recipes/evaluate.py`` report (its scene's).
+``--env-steps N`` compares runs of different lengths at one budget: each row then reads the
+periodic evaluation logged at N env-steps, and the training reward over the last 8 points
+logged up to N (none for a finetune's zero-shot score at 0).
 """
 
 from __future__ import annotations
@@ -81,17 +82,20 @@ def row(label: str, runs: list[Path], at: int | None = None) -> list[str]:
             cell += f" ({spread([s['stochastic'][name] for s in per_run], form)})"
         cells.append(cell)
     training = [
-        statistics.mean([r for s, r in zip(*series, strict=True) if at is None or s <= at][-8:])
+        [r for s, r in zip(*series, strict=True) if at is None or s <= at][-8:]
         for series in rewards
     ]
-    cells.append(spread(training, "{:+.3f}"))
+    # none before a finetune's first iteration: its zero-shot row (at=0) leaves the cell empty
+    cells.append(spread([statistics.mean(t) for t in training], "{:+.3f}") if all(training) else "")
     return cells
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("recipes", nargs="+", help="label=summary,summary,...")
-    parser.add_argument("--baselines", type=Path, help="an evaluate_baselines JSON file")
+    parser.add_argument(
+        "--baselines", type=Path, help="an evaluate_baselines or evaluate.py JSON file"
+    )
     parser.add_argument("--env-steps", type=int, help="score every run at this many env-steps")
     args = parser.parse_args()
     header = ["recipe", "seeds", "env-steps", *(name for name, _ in METRICS)]
@@ -103,7 +107,8 @@ def main() -> None:
         runs = [Path(p) for p in paths.split(",")]
         print("| " + " | ".join(row(label, runs, args.env_steps)) + " |")
     if args.baselines:
-        results = json.loads(args.baselines.read_text())["results"]
+        saved = json.loads(args.baselines.read_text())  # evaluate_baselines' or evaluate.py's
+        results = saved["results"] if "results" in saved else saved["baselines"]
         for name, metrics in results.items():
             cells = [f"{name} (baseline)", "", ""]
             cells += [form.format(metrics[metric]) for metric, form in METRICS] + [""]

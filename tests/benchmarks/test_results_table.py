@@ -40,3 +40,13 @@ def test_a_run_without_sampled_evaluations_shows_its_mean_actions_alone(tmp_path
     run = write_run(tmp_path / "mean", sampled=False)
     assert list(scores(run)) == ["deterministic"]
     assert row("recipe", [run], at=200)[3] == "0.200"
+
+
+def test_a_finetunes_zero_shot_row_has_no_training_reward_yet(tmp_path):
+    run = write_run(tmp_path / "finetune", sampled=False)
+    for name, _ in METRICS:  # the pretrained weights' score, logged before any iteration
+        logged = run / f"eval_{name}.csv"
+        logged.write_text("0,0.05\n" + logged.read_text())
+    cells = row("recipe", [run, run], at=0)
+    assert cells[3] == "0.050 ± 0.000" and cells[-1] == ""
+    assert row("recipe", [run], at=100)[-1] == "+0.150"  # the mean of 0.1 and 0.2
