@@ -221,10 +221,18 @@ def test_replayed_function_reads_each_calls_inputs():
         assert graphed.captured == (call >= graphed.warmup)
 
 
+# the Gaussian policy head with position actions, beside the default Beta head and delta actions
+GAUSSIAN = dataclasses.replace(MODEL, distribution="normal")
+POSITION = dataclasses.replace(ENV, action_mode="position")
+
+
 @pytest.mark.gpu
-def test_replayed_actor_step_gives_the_eager_outputs():
-    networks = make_terrashift_networks(MODEL).to(CUDA).eval()
-    env = make_training_env(ENV, networks, num_envs=5, device=CUDA, seed=0)
+@pytest.mark.parametrize(
+    ("model", "scene"), [(MODEL, ENV), (GAUSSIAN, POSITION)], ids=["beta", "normal"]
+)
+def test_replayed_actor_step_gives_the_eager_outputs(model, scene):
+    networks = make_terrashift_networks(model).to(CUDA).eval()
+    env = make_training_env(scene, networks, num_envs=5, device=CUDA, seed=0)
     outputs = [keys.ACTION, keys.ACTION_LOG_PROB, keys.NEXT_RECURRENT_STATE]
     graphed = CudaGraphed(lambda td: networks.actor(td).select(*outputs))
     td = env.reset()
@@ -246,10 +254,19 @@ def test_replayed_actor_step_gives_the_eager_outputs():
 
 
 @pytest.mark.gpu
-@pytest.mark.parametrize(("bf16", "compiled"), [(False, False), (True, False), (False, True)])
-def test_replayed_updates_give_the_eager_parameters(bf16, compiled):
+@pytest.mark.parametrize(
+    ("bf16", "compiled", "model", "scene"),
+    [
+        (False, False, MODEL, ENV),
+        (True, False, MODEL, ENV),
+        (False, True, MODEL, ENV),
+        (False, False, GAUSSIAN, POSITION),
+    ],
+    ids=["fp32", "bf16", "compiled", "normal"],
+)
+def test_replayed_updates_give_the_eager_parameters(bf16, compiled, model, scene):
     torch.manual_seed(0)
-    networks = make_terrashift_networks(MODEL)
+    networks = make_terrashift_networks(model)
     # the schedules change between the two updates below
     config = TrainConfig(
         num_envs=8,
@@ -263,7 +280,7 @@ def test_replayed_updates_give_the_eager_parameters(bf16, compiled):
     trainers = {}
     for graphs in (False, True):
         copied = copy.deepcopy(networks).to(CUDA)
-        env = make_training_env(ENV, copied, num_envs=8, device=CUDA, seed=0)
+        env = make_training_env(scene, copied, num_envs=8, device=CUDA, seed=0)
         # the replayed trainer's networks are also compiled when ``compiled`` is set
         variant = dataclasses.replace(config, cuda_graphs=graphs, compile=compiled and graphs)
         trainers[graphs] = MAPOCATrainer(env, copied, variant)
