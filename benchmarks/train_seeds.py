@@ -7,7 +7,9 @@
 
 Run ``s`` is ``python recipes/<recipe>.py <overrides> run.seed=s logger=csv`` in its own
 process, in ``<root>/<name>_seed<s>_part<p>``; the i-th seed's on GPU ``i mod gpus``
-(``CUDA_VISIBLE_DEVICES``; with ``--gpus 0`` every run uses the recipe's default device).
+(``CUDA_VISIBLE_DEVICES``; with ``--gpus 0`` every run uses the recipe's default device, so
+``CUDA_VISIBLE_DEVICES=2 python benchmarks/train_seeds.py --gpus 0 ...`` keeps one command's
+seeds on GPU 2 while other commands use the other GPUs).
 Several runs share a GPU, so compare them by env-steps, not by wall-clock time. ``--resume``
 starts part ``p + 1`` of each seed from the last checkpoint of its newest part, so that runs
 longer than one sitting continue exactly (``run.resume``). When every run has stopped, each
