@@ -43,6 +43,7 @@ TITLES = {
     "eval_goal_fraction": "goal fraction (evaluation mode)",
     "eval_success_rate": "success rate (evaluation mode)",
     **{f"concentration_{name}": f"median Beta α + β, {name}" for name in ACTION_NAMES},
+    **{f"action_median_{name}": f"median action, {name}" for name in ACTION_NAMES},
 }
 DEFAULT_METRICS = ("reward_per_decision", "success_rate", "env_steps_per_s")
 

@@ -429,6 +429,7 @@ class OnPolicyTrainer:
         self.env_steps += frames * distributed.world_size()
         metrics.update(episode_metrics(data))
         metrics.update(concentration_metrics(data))
+        metrics.update(action_medians(data))
         metrics["env_steps_per_s"] = frames / (finished - start)
         metrics["collection_steps_per_s"] = frames / (collected - start)
         metrics["update_seconds"] = finished - collected
@@ -765,10 +766,25 @@ def concentration_metrics(data: TensorDictBase) -> dict[str, float]:
     else:
         name = "concentration"
         spread = data.get(keys.BETA_CONCENTRATION1) + data.get(keys.BETA_CONCENTRATION0)
-    # the lower median through a sort: median(dim) has no deterministic CUDA implementation
-    ordered = spread.float().flatten(0, -2).sort(dim=0).values
-    medians = ordered[(len(ordered) - 1) // 2].tolist()
+    medians = _lower_medians(spread)
     return {f"{name}_{action}": value for action, value in zip(ACTION_NAMES, medians, strict=True)}
+
+
+def action_medians(data: TensorDictBase) -> dict[str, float]:
+    """Where the policy acts, per action dimension: ``action_median_<name>``, the median over
+    the collected agent-steps of the action the actuators received (clipped to [-1, 1]). A
+    dimension pinned near a limit in every state shows there (as a failing run's amplitude)."""
+    medians = _lower_medians(data.get(keys.ACTION).clamp(-1.0, 1.0))
+    return {
+        f"action_median_{name}": value for name, value in zip(ACTION_NAMES, medians, strict=True)
+    }
+
+
+def _lower_medians(values: torch.Tensor) -> list[float]:
+    """The lower median of each action dimension (the last) over all the others, through a
+    sort: ``median(dim)`` has no deterministic CUDA implementation."""
+    ordered = values.float().flatten(0, -2).sort(dim=0).values
+    return ordered[(len(ordered) - 1) // 2].tolist()
 
 
 def iterate_until(

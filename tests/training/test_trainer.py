@@ -19,6 +19,7 @@ from terrashift_rl.sim.types import ACTION_NAMES
 from terrashift_rl.training import (
     MAPOCATrainer,
     TrainConfig,
+    action_medians,
     concentration_metrics,
     make_training_env,
 )
@@ -83,6 +84,24 @@ def test_concentration_metrics_are_the_median_alpha_plus_beta_of_each_action():
     logged = make_trainer().train_iteration()  # a trainer logs them every iteration
     floor = 2 * TerraShiftModelConfig.small().min_concentration
     assert all(logged[key] > floor for key in metrics)
+
+
+def test_action_medians_are_those_the_actuators_received():
+    # five agent-steps; action d is 0.1 d above [-3, -0.5, 0, 0.4, 2], clipped to [-1, 1]
+    base = torch.tensor([-3.0, -0.5, 0.0, 0.4, 2.0])[:, None] + 0.1 * torch.arange(6.0)
+    data = TensorDict({keys.ACTION: base[None, :, None]}, batch_size=[1, 5])
+    metrics = action_medians(data)
+    assert list(metrics) == [f"action_median_{name}" for name in ACTION_NAMES]
+    assert list(metrics.values()) == pytest.approx([0.1 * d for d in range(6)])
+    # of an even count, the lower of the two middle values (clipped: -0.2, 0.3, 1, 1)
+    data = TensorDict(
+        {keys.ACTION: torch.tensor([0.3, 5.0, 7.0, -0.2])[None, :, None, None].expand(1, 4, 1, 6)},
+        batch_size=[1, 4],
+    )
+    assert action_medians(data)["action_median_amplitude"] == pytest.approx(0.3)
+
+    logged = make_trainer().train_iteration()  # a trainer logs them every iteration
+    assert all(-1.0 <= logged[key] <= 1.0 for key in metrics)
 
 
 def test_a_gaussian_policy_logs_its_spread_in_place_of_concentrations():
