@@ -772,8 +772,8 @@ def concentration_metrics(data: TensorDictBase) -> dict[str, float]:
 
 def action_medians(data: TensorDictBase) -> dict[str, float]:
     """Where the policy acts, per action dimension: ``action_median_<name>``, the median over
-    the collected agent-steps of the action the actuators received (clipped to [-1, 1]). A
-    dimension pinned near a limit in every state shows there (as a failing run's amplitude)."""
+    the collected agent-steps of the action the actuators received (clipped to [-1, 1]): beside
+    a dimension's concentration, whether the policy holds it near one value, and which."""
     medians = _lower_medians(data.get(keys.ACTION).clamp(-1.0, 1.0))
     return {
         f"action_median_{name}": value for name, value in zip(ACTION_NAMES, medians, strict=True)
