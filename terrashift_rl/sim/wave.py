@@ -29,6 +29,13 @@ def wrap_offset(d: float, period: float, inverse_period: float) -> float:
 
 
 @wp.func
+def towards(target: float, value: float, gain: float) -> float:
+    """The action that moves ``value`` towards ``target`` in one tick, in units of a full delta
+    action's change ``gain``: at most one either way (the actuators' rate limit)."""
+    return wp.clamp((target - value) / gain, -1.0, 1.0)
+
+
+@wp.func
 def wavelet_frame(angle: float, sigma: wp.vec2) -> wp.vec4:
     """What the height sum needs of a wavelet's angle and widths: (cos theta, sin theta,
     1 / sigma_x^2, 1 / sigma_y^2)."""
@@ -75,22 +82,15 @@ def update_agents(
     if model.action_mode == ACTION_TARGET:
         # the change towards each target, in units of a full delta action's change per tick
         d_velocity = wp.vec2(
-            wp.clamp((a[0] * vmax - v0[0]) / v_gain, -1.0, 1.0),
-            wp.clamp((a[1] * vmax - v0[1]) / v_gain, -1.0, 1.0),
+            towards(a[0] * vmax, v0[0], v_gain), towards(a[1] * vmax, v0[1], v_gain)
         )
-        d_omega = wp.clamp((a_omega * omax - w0) / (model.angular_velocity_gain * step), -1.0, 1.0)
-        d_amplitude = wp.clamp(
-            (a_amplitude * amax - amp0) / (model.amplitude_gain * step), -1.0, 1.0
-        )
+        d_omega = towards(a_omega * omax, w0, model.angular_velocity_gain * step)
+        d_amplitude = towards(a_amplitude * amax, amp0, model.amplitude_gain * step)
         half_range = 0.5 * (model.sigma_max - model.sigma_min)
-        s_target = wp.vec2(
-            model.sigma_min + (a_sigma[0] + 1.0) * half_range,
-            model.sigma_min + (a_sigma[1] + 1.0) * half_range,
-        )
         s_gain = model.sigma_gain * step
         d_sigma = wp.vec2(
-            wp.clamp((s_target[0] - s0[0]) / s_gain, -1.0, 1.0),
-            wp.clamp((s_target[1] - s0[1]) / s_gain, -1.0, 1.0),
+            towards(model.sigma_min + (a_sigma[0] + 1.0) * half_range, s0[0], s_gain),
+            towards(model.sigma_min + (a_sigma[1] + 1.0) * half_range, s0[1], s_gain),
         )
     elif model.action_mode == ACTION_POSITION:
         # a servo: the velocity moves towards one that points to the target position (the short
@@ -100,8 +100,8 @@ def update_agents(
             offset = wp.vec2(wrap_offset(offset[0], g, 1.0 / g), wrap_offset(offset[1], g, 1.0 / g))
         aim = model.position_gain * offset
         d_velocity = wp.vec2(
-            wp.clamp((wp.clamp(aim[0], -vmax, vmax) - v0[0]) / v_gain, -1.0, 1.0),
-            wp.clamp((wp.clamp(aim[1], -vmax, vmax) - v0[1]) / v_gain, -1.0, 1.0),
+            towards(wp.clamp(aim[0], -vmax, vmax), v0[0], v_gain),
+            towards(wp.clamp(aim[1], -vmax, vmax), v0[1], v_gain),
         )
 
     v = v0 + v_gain * d_velocity
