@@ -39,8 +39,9 @@ class TerraShiftEnv(EnvBase):
     ``done/terminated/truncated``       [N, 1], [N, K, 1]    at the root and under ``"agents"``
     ==================================  ===================  =======================================
 
-    ``truncated`` marks the step limit; ``terminated`` is only raised in evaluation mode
-    (``respawn=False``) once every sphere is resolved.
+    ``truncated`` marks the step limit; ``terminated`` is only raised where nothing respawns
+    (evaluation mode, ``respawn=False``, or the environments that ``respawn_fraction`` leaves
+    out) once every sphere is resolved.
 
     Actions of the wrong shape, dtype or device, or holding NaN or infinity, raise
     ``ValueError`` naming ``("agents", "action")`` before anything is simulated; finite values

@@ -135,6 +135,10 @@ class TerraShiftConfig:
     respawn: bool = True
     """Training mode: respawn resolved objects after ``respawn_delay``. False is evaluation
     mode: no respawn, and the episode terminates once every object is resolved."""
+    respawn_fraction: float = 1.0
+    """With ``respawn``, the fraction of environments that respawn, spread evenly over their
+    indices (0.5: every second one); the others run as in evaluation mode, so that training
+    also meets an episode's last spheres [ratio], in [0, 1]."""
     respawn_delay: float = 0.2
     """Delay between an object's goal/out-of-bounds event and its respawn; also the stagger
     between object spawns after a reset [s], >= 0."""
@@ -283,6 +287,7 @@ class TerraShiftConfig:
         ):
             _check_float(self, name, low=0.0)
         _check_float(self, "restitution", low=0.0, high=1.0, low_open=True)
+        _check_float(self, "respawn_fraction", low=0.0, high=1.0)
         _check_float(self, "potential_gamma", low=0.0, high=1.0)
         for name in (
             "goal_reward",

@@ -46,6 +46,15 @@ def goal_position(model: Model, height: wp.array3d(dtype=float), e: int, cell: w
 
 
 @wp.func
+def respawns(model: Model, e: int) -> bool:
+    """Whether environment ``e`` respawns resolved spheres: in training mode, the environments
+    where ``e * respawn_fraction`` passes a whole number on the way to ``e + 1`` (all of them
+    at 1, every second one at 0.5, none at 0); never in evaluation mode."""
+    f = model.respawn_fraction
+    return model.respawn != 0 and int(float(e + 1) * f) > int(float(e) * f)
+
+
+@wp.func
 def assigned_goal(
     model: Model,
     height: wp.array3d(dtype=float),
@@ -275,7 +284,7 @@ def tick_events(
                 goal_distance[e, j] = d
             if resolved != 0:
                 active[e, j] = 0
-                if model.respawn != 0:
+                if respawns(model, e):
                     spawn_timer[e, j] = model.respawn_ticks
                 else:
                     spawn_timer[e, j] = -1
@@ -308,13 +317,13 @@ def end_decision(
     terminated: wp.array(dtype=wp.bool),
     truncated: wp.array(dtype=wp.bool),
 ):
-    """Counts the decision; sets ``truncated`` at the step limit and, in evaluation mode,
-    ``terminated`` once every sphere is resolved. Launch dim: [num_envs]."""
+    """Counts the decision; sets ``truncated`` at the step limit and, where nothing respawns
+    (:func:`respawns`), ``terminated`` once every sphere is resolved. Launch dim: [num_envs]."""
     e = wp.tid()
     count = step_count[e] + 1
     step_count[e] = count
     truncated[e] = count >= model.max_episode_steps
-    if model.respawn == 0:
+    if not respawns(model, e):
         done = bool(True)
         for j in range(model.num_objects):
             if active[e, j] != 0 or spawn_timer[e, j] != -1:

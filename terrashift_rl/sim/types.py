@@ -78,6 +78,7 @@ class Model:
     out_of_bounds_xy: float
     out_of_bounds_z: float
     respawn: int
+    respawn_fraction: float
     respawn_ticks: int
     spawn_margin: int
     spawn_drop_height: float
@@ -223,6 +224,7 @@ def build_model(config: TerraShiftConfig) -> Model:
     m.out_of_bounds_xy = config.out_of_bounds_xy
     m.out_of_bounds_z = config.out_of_bounds_z
     m.respawn = int(config.respawn)
+    m.respawn_fraction = config.respawn_fraction
     m.respawn_ticks = config.respawn_ticks
     m.spawn_margin = config.spawn_margin
     m.spawn_drop_height = config.spawn_drop_height

@@ -41,6 +41,7 @@ def test_presets_hold_the_paper_settings():
         ({"substeps": 2.5}, "substeps must be an integer"),
         ({"wrap_edges": "no"}, "wrap_edges must be true or false, got 'no'"),
         ({"respawn": "false"}, "respawn must be true or false, got 'false'"),
+        ({"respawn_fraction": 1.5}, r"respawn_fraction must be in \[0.0, 1.0\], got 1.5"),
         ({"sigma_max": "wide"}, "sigma_max must be a finite number, got 'wide'"),
     ],
 )

@@ -349,6 +349,25 @@ def test_training_never_terminates_and_truncates_at_the_step_limit():
     assert sim.view("episode_goals")[0] == 0
 
 
+@pytest.mark.parametrize(
+    ("fraction", "respawning"),
+    [(1.0, [1, 1, 1, 1, 1]), (0.5, [0, 1, 0, 1, 0]), (0.4, [0, 0, 1, 0, 1]), (0.0, [0] * 5)],
+)
+def test_respawn_fraction_picks_the_environments_that_respawn(fraction, respawning):
+    sim = make_sim(num_envs=5, num_objects=1, num_goals=1, respawn_fraction=fraction, gravity=0.0)
+    sim.reset()
+    make_inert(sim)
+    zero = torch.zeros(sim.action_shape)
+    for e in range(sim.num_envs):  # every sphere on its goal: resolved on the first tick
+        sim.view("sphere_position")[e, 0] = goal_xyz(sim.config, *sim.view("goal_cell")[e, 0])
+    sim.step(zero)
+    assert sim.view("episode_goals").tolist() == [1] * 5
+    timer = sim.view("spawn_timer")[:, 0].tolist()
+    assert timer == [sim.config.respawn_ticks if r else -1 for r in respawning]
+    # the others run as in evaluation mode: their episodes end with their last sphere
+    assert sim.view("terminated").tolist() == [not r for r in respawning]
+
+
 @pytest.mark.parametrize("action_repeat", [1, 2])
 def test_resolved_sphere_respawns_after_the_respawn_delay(action_repeat):
     sim = make_sim(
