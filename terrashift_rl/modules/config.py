@@ -115,6 +115,14 @@ class TerraShiftModelConfig:
     initial_std: float = 0.5
     """With ``distribution=normal``, the standard deviation every action dimension starts
     from, > 0 (0.5 is about the spread of the Beta head's initial Beta(1.7, 1.7) on [-1, 1])."""
+    initial_action_mean: list[float] = field(default_factory=list)
+    """The policy's mean action at initialisation, one value per action dimension (TerraShift's
+    v_x, v_y, omega, amplitude, sigma_x, sigma_y), each inside +-action_range; empty: the
+    middle of the range. It shifts the initial biases of the policy's output layers, so it
+    holds exactly where the rest of those layers reads zero: a Beta keeps its smaller
+    concentration at the centred start's (``min_concentration + log 2``) and raises the other;
+    a Gaussian's mean moves by it. Like ``policy_output_gain``, it changes only initial
+    weights."""
     critic_hidden_dim: int = 128
     """Hidden width of the value and baseline MLPs."""
     action_range: float = 1.0
@@ -169,6 +177,12 @@ class TerraShiftModelConfig:
             )
         if not (math.isfinite(self.initial_std) and self.initial_std > 0):
             raise ValueError(f"initial_std must be a finite number > 0, got {self.initial_std}.")
+        for value in self.initial_action_mean:
+            if not (math.isfinite(value) and abs(value) < self.action_range):
+                raise ValueError(
+                    f"initial_action_mean must hold finite values inside +-action_range "
+                    f"({self.action_range}), got {list(self.initial_action_mean)}."
+                )
         if self.policy_output_gain < 0:
             raise ValueError(f"policy_output_gain must be >= 0, got {self.policy_output_gain}.")
 

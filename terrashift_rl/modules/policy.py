@@ -40,6 +40,16 @@ class BetaPolicyHead(nn.Module):
         self.alpha_head = _output_layer(config, action_dim)
         self.beta_head = _output_layer(config, action_dim)
         self.min_concentration = config.min_concentration
+        mean = _initial_action_mean(config, action_dim)
+        if mean is not None:
+            # the Beta's mean on [0, 1]; the smaller concentration stays at the centred start's
+            unit = (mean / config.action_range + 1.0) / 2.0
+            centred = config.min_concentration + math.log(2.0)
+            alpha = centred * torch.clamp(unit / (1.0 - unit), min=1.0)
+            beta = centred * torch.clamp((1.0 - unit) / unit, min=1.0)
+            with torch.no_grad():
+                self.alpha_head.bias.add_(_inverse_softplus(alpha - config.min_concentration))
+                self.beta_head.bias.add_(_inverse_softplus(beta - config.min_concentration))
 
     def forward(self, embedding: Tensor) -> tuple[Tensor, Tensor]:
         """Map agent embeddings [..., d] to (concentration1, concentration0), each [..., A]."""
@@ -75,6 +85,10 @@ class GaussianPolicyHead(nn.Module):
         super().__init__()
         self.mlp = _policy_mlp(config)
         self.mean_head = _output_layer(config, action_dim)
+        mean = _initial_action_mean(config, action_dim)
+        if mean is not None:
+            with torch.no_grad():
+                self.mean_head.bias.add_(mean)
         self.log_std = nn.Parameter(torch.full((action_dim,), math.log(config.initial_std)))
 
     def forward(self, embedding: Tensor) -> tuple[Tensor, Tensor]:
@@ -100,3 +114,20 @@ def _output_layer(config: TerraShiftModelConfig, action_dim: int) -> nn.Linear:
         layer.weight.mul_(config.policy_output_gain)
         layer.bias.mul_(config.policy_output_gain)
     return layer
+
+
+def _initial_action_mean(config: TerraShiftModelConfig, action_dim: int) -> Tensor | None:
+    """``config.initial_action_mean`` as a tensor [action_dim], or None where it is empty."""
+    if not config.initial_action_mean:
+        return None
+    if len(config.initial_action_mean) != action_dim:
+        raise ValueError(
+            f"initial_action_mean needs one value per action dimension ({action_dim}), got "
+            f"{len(config.initial_action_mean)}: {list(config.initial_action_mean)}"
+        )
+    return torch.tensor(list(config.initial_action_mean), dtype=torch.float32)
+
+
+def _inverse_softplus(value: Tensor) -> Tensor:
+    """The x with softplus(x) = value, for value > 0."""
+    return value + torch.log(-torch.expm1(-value))

@@ -374,7 +374,7 @@ def hydra_overrides_of_other_ranks() -> list[str]:
 # How the networks execute, not what they learn: a run may resume with other values.
 EXECUTION_SETTINGS = ("bf16", "tf32", "compile", "cuda_graphs", "deterministic")
 # What only sets the initial weights, which a checkpoint's weights replace.
-INITIALISATION_SETTINGS = ("policy_output_gain",)
+INITIALISATION_SETTINGS = ("policy_output_gain", "initial_action_mean")
 
 
 RENAMED_TRAIN_SETTINGS = {

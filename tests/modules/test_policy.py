@@ -162,6 +162,39 @@ def test_action_range_widens_the_policys_support_about_the_same_beta(small_confi
         dataclasses.replace(small_config, action_range=0.5)
 
 
+@pytest.mark.parametrize(("distribution", "span"), [("beta", 1.0), ("beta", 2.0), ("normal", 1.0)])
+def test_initial_action_mean_sets_the_untrained_policys_mean_action(
+    small_config, make_batch, distribution, span
+):
+    data = make_batch((4,))
+    wanted = [0.0, 0.3, 0.0, -0.1, 0.0, -0.9]
+    overrides = {"distribution": distribution, "action_range": span}
+    # with zero output weights, the biases alone set the distribution: exactly the mean asked
+    _, mean = mean_action(
+        small_config, data, initial_action_mean=wanted, policy_output_gain=0.0, **overrides
+    )
+    torch.testing.assert_close(mean, torch.tensor(wanted).expand_as(mean))
+    # at the default gain, the same shift of the same initial weights
+    _, centred = mean_action(small_config, data, **overrides)
+    _, shifted = mean_action(small_config, data, initial_action_mean=wanted, **overrides)
+    moved = (shifted - centred).mean(dim=(0, 1))
+    torch.testing.assert_close(moved, torch.tensor(wanted), atol=0.05, rtol=0.0)
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ([0.0, 0.0, 0.0, -1.0, 0.0, 0.0], "initial_action_mean must hold finite values"),
+        ([0.0, 0.0, 0.0, math.nan, 0.0, 0.0], "initial_action_mean must hold finite values"),
+        ([0.0, -0.1], r"one value per action dimension \(6\), got 2"),
+    ],
+)
+def test_bad_initial_action_means_are_refused(small_config, value, message):
+    with pytest.raises(ValueError, match=message):
+        config = dataclasses.replace(small_config, initial_action_mean=value)
+        make_terrashift_networks(config, action_dim=ACTION_DIM)
+
+
 def test_gaussian_policy_samples_about_its_mean_with_one_learned_spread(small_config, make_batch):
     torch.manual_seed(0)
     config = dataclasses.replace(small_config, distribution="normal", initial_std=0.3)

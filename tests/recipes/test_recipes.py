@@ -521,7 +521,11 @@ def test_resume_ignores_settings_that_only_set_the_initial_weights():
         "model_config": {"embed_dim": 32, "policy_output_gain": 0.01},
         "train_config": {"minibatches": 2},
     }
-    for saved_model in ({"embed_dim": 32, "policy_output_gain": 1.0}, {"embed_dim": 32}):
+    for saved_model in (
+        {"embed_dim": 32, "policy_output_gain": 1.0},
+        {"embed_dim": 32, "initial_action_mean": [0.0, 0.0, 0.0, -0.1, 0.0, 0.0]},
+        {"embed_dim": 32},
+    ):
         check_resumable({**configs, "model_config": saved_model}, configs, cfg)
     wider = {**configs, "model_config": {"embed_dim": 64, "policy_output_gain": 0.01}}
     with pytest.raises(ValueError, match="add model.embed_dim=64 to continue"):
