@@ -47,11 +47,11 @@ def goal_position(model: Model, height: wp.array3d(dtype=float), e: int, cell: w
 
 @wp.func
 def respawns(model: Model, e: int) -> bool:
-    """Whether environment ``e`` respawns resolved spheres: in training mode, the environments
-    where ``e * respawn_fraction`` passes a whole number on the way to ``e + 1`` (all of them
-    at 1, every second one at 0.5, none at 0); never in evaluation mode."""
+    """Whether environment ``e`` respawns resolved spheres: where ``e * respawn_fraction``
+    passes a whole number on the way to ``e + 1`` (all of them at 1, every second one at 0.5,
+    none at 0, the model's fraction in evaluation mode)."""
     f = model.respawn_fraction
-    return model.respawn != 0 and int(float(e + 1) * f) > int(float(e) * f)
+    return int(float(e + 1) * f) > int(float(e) * f)
 
 
 @wp.func

@@ -77,7 +77,6 @@ class Model:
     goal_radius: float
     out_of_bounds_xy: float
     out_of_bounds_z: float
-    respawn: int
     respawn_fraction: float
     respawn_ticks: int
     spawn_margin: int
@@ -223,8 +222,8 @@ def build_model(config: TerraShiftConfig) -> Model:
     m.goal_radius = config.goal_radius
     m.out_of_bounds_xy = config.out_of_bounds_xy
     m.out_of_bounds_z = config.out_of_bounds_z
-    m.respawn = int(config.respawn)
-    m.respawn_fraction = config.respawn_fraction
+    # evaluation mode is no environment respawning
+    m.respawn_fraction = config.respawn_fraction if config.respawn else 0.0
     m.respawn_ticks = config.respawn_ticks
     m.spawn_margin = config.spawn_margin
     m.spawn_drop_height = config.spawn_drop_height
