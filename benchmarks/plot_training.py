@@ -42,6 +42,7 @@ TITLES = {
     "lr_trunk_policy": "learning rate, trunk and policy",
     "eval_goal_fraction": "goal fraction (evaluation mode)",
     "eval_success_rate": "success rate (evaluation mode)",
+    "eval_out_of_bounds_per_episode": "spheres lost per episode (evaluation mode)",
     **{f"concentration_{name}": f"median Beta α + β, {name}" for name in ACTION_NAMES},
     **{f"action_median_{name}": f"median action, {name}" for name in ACTION_NAMES},
 }
@@ -96,7 +97,11 @@ def main() -> None:
         ax.set_title(TITLES.get(metric, metric))
         ax.set_xlabel("env-steps (millions)")
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
+    if len(args.runs) > 10:  # a long legend goes beside the panels, not over the first
+        handles, labels = axes[0].get_legend_handles_labels()
+        figure.legend(handles, labels, loc="outside right upper", fontsize=8)
+    else:
+        axes[0].legend(fontsize=8)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(args.out, dpi=110)
     print(f"wrote {args.out}")
