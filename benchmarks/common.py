@@ -52,6 +52,18 @@ def read_series(run: Path, metric: str) -> tuple[list[float], list[float]]:
     return [step for step, _ in rows], [value for _, value in rows]
 
 
+def joined_series(run: str | Path, metric: str) -> tuple[list[float], list[float]]:
+    """``metric``'s steps and values over a run's parts in order: runs continued with
+    ``run.resume`` are named by their parts joined with ``+`` (``a.json+a_part1.json``)."""
+    series = [read_series(part, metric) for part in run_parts(run)]
+    return [s for steps, _ in series for s in steps], [v for _, values in series for v in values]
+
+
+def run_parts(run: str | Path) -> list[Path]:
+    """The parts of a run named ``a+b+...`` (one part for a plain path)."""
+    return [Path(part) for part in str(run).split("+")]
+
+
 def read_summary(path: Path) -> dict:
     """A run summary written by ``compact_logs.py``."""
     if path not in _SUMMARIES:

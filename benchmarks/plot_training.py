@@ -23,7 +23,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from common import read_series, run_label
+from common import joined_series, run_label, run_parts
 from matplotlib import colormaps
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
@@ -47,12 +47,6 @@ TITLES = {
     **{f"action_median_{name}": f"median action, {name}" for name in ACTION_NAMES},
 }
 DEFAULT_METRICS = ("reward_per_decision", "success_rate", "env_steps_per_s")
-
-
-def joined_series(run: str, metric: str) -> tuple[list[float], list[float]]:
-    """``metric``'s env-steps and values over a run's parts (``a.json+b.json``), in order."""
-    series = [read_series(Path(part), metric) for part in run.split("+")]
-    return [s for steps, _ in series for s in steps], [v for _, values in series for v in values]
 
 
 def main() -> None:
@@ -90,7 +84,7 @@ def main() -> None:
                 [s / 1e6 for s in steps],
                 values,
                 marker="." if len(steps) < 10 else None,
-                label=run_label(Path(run.split("+")[0])),
+                label=run_label(run_parts(run)[0]),
             )
         if metric == args.reference_metric and args.reference is not None:
             ax.axhline(args.reference, linestyle="--", color="grey", label=args.reference_label)

@@ -5,7 +5,9 @@
         --baselines benchmarks/results/training/baselines_evaluation_seed1.json
 
 Each argument is ``label=summary,summary,...`` (split at the last ``=``): the run summaries
-(``compact_logs.py``) of one recipe's seeds. A row gives the mean ± standard deviation over
+(``compact_logs.py``) of one recipe's seeds; a run continued in parts is its parts' summaries
+joined with ``+`` (``a.json+a_part1.json``), whose curves are read as one and whose last part
+holds its evaluation files. A row gives the mean ± standard deviation over
 them of the evaluation-mode metrics (``recipes/evaluate.py``'s ``evaluation`` file, or else the
 last periodic evaluation the run logged, ``eval_*``), the policy's mean action first and its
 samples in parentheses where evaluated (``eval_sampled_*``, logged with
@@ -24,7 +26,7 @@ import json
 import statistics
 from pathlib import Path
 
-from common import read_evaluations, read_series
+from common import joined_series, read_evaluations, run_parts
 
 METRICS = (
     ("goal_fraction", "{:.3f}"),
@@ -42,17 +44,17 @@ def spread(values: list[float], form: str) -> str:
     return f"{form.format(statistics.mean(values))} ± {deviation}"
 
 
-def scores(run: Path, at: int | None = None) -> dict[str, dict[str, float]]:
+def scores(run: str | Path, at: int | None = None) -> dict[str, dict[str, float]]:
     """Evaluation-mode metrics of a run per policy kind (``deterministic``, ``stochastic``):
     its evaluation file's, else its last periodic evaluation, or the one at ``at`` env-steps
     (``eval_*``, and ``eval_sampled_*`` where the run scored its samples too)."""
-    evaluation = read_evaluations(run).get("evaluation")
+    evaluation = read_evaluations(run_parts(run)[-1]).get("evaluation")
     if evaluation is not None and at is None:
         return {kind: evaluation[kind] for kind in ("deterministic", "stochastic")}
     result = {}
     for kind, prefix in (("deterministic", "eval_"), ("stochastic", "eval_sampled_")):
         logged = {
-            name: dict(zip(*read_series(run, f"{prefix}{name}"), strict=True))
+            name: dict(zip(*joined_series(run, f"{prefix}{name}"), strict=True))
             for name, _ in METRICS
         }
         if not all(logged.values()):
@@ -70,9 +72,9 @@ def scores(run: Path, at: int | None = None) -> dict[str, dict[str, float]]:
     return result
 
 
-def row(label: str, runs: list[Path], at: int | None = None) -> list[str]:
+def row(label: str, runs: list[str | Path], at: int | None = None) -> list[str]:
     per_run = [scores(run, at) for run in runs]
-    rewards = [read_series(run, "reward_per_decision") for run in runs]
+    rewards = [joined_series(run, "reward_per_decision") for run in runs]
     cells = [label, str(len(runs))]
     end = statistics.mean(steps[-1] for steps, _ in rewards) if at is None else at
     cells.append(f"{end / 1e6:.1f} M")
@@ -92,7 +94,9 @@ def row(label: str, runs: list[Path], at: int | None = None) -> list[str]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("recipes", nargs="+", help="label=summary,summary,...")
+    parser.add_argument(
+        "recipes", nargs="+", help="label=summary,summary,... (a run's parts joined by +)"
+    )
     parser.add_argument(
         "--baselines", type=Path, help="an evaluate_baselines or evaluate.py JSON file"
     )
@@ -104,7 +108,7 @@ def main() -> None:
     print("|" + "---|" * len(header))
     for recipe in args.recipes:
         label, _, paths = recipe.rpartition("=")  # labels may hold overrides
-        runs = [Path(p) for p in paths.split(",")]
+        runs = paths.split(",")
         print("| " + " | ".join(row(label, runs, args.env_steps)) + " |")
     if args.baselines:
         saved = json.loads(args.baselines.read_text())  # evaluate_baselines' or evaluate.py's

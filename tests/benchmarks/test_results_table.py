@@ -50,3 +50,18 @@ def test_a_finetunes_zero_shot_row_has_no_training_reward_yet(tmp_path):
     cells = row("recipe", [run, run], at=0)
     assert cells[3] == "0.050 ± 0.000" and cells[-1] == ""
     assert row("recipe", [run], at=100)[-1] == "+0.150"  # the mean of 0.1 and 0.2
+
+
+def test_a_run_in_parts_is_scored_at_any_budget_of_its_parts(tmp_path):
+    first = write_run(tmp_path / "part0", sampled=False)
+    second = tmp_path / "part1"  # the resumed part: evaluation at 300, rewards from 250
+    second.mkdir()
+    (second / "reward_per_decision.csv").write_text("250,0.5\n300,0.6\n")
+    for index, (name, _) in enumerate(METRICS):
+        (second / f"eval_{name}.csv").write_text(f"300,{(index + 1) * 0.3}\n")
+    joined = f"{first}+{second}"
+    assert scores(joined, at=100)["deterministic"]["goal_fraction"] == pytest.approx(0.1)
+    assert scores(joined)["deterministic"]["goal_fraction"] == pytest.approx(0.3)
+    cells = row("recipe", [joined], at=300)
+    assert cells[2] == "0.0 M" and cells[3] == "0.300"
+    assert cells[-1] == "+0.350"  # the mean of the six rewards logged up to 300

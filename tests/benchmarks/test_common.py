@@ -1,11 +1,11 @@
-"""plot_training.py: a run continued in parts is read as one series."""
+"""common.py: a run continued in parts is read as one series."""
 
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
 
-from plot_training import joined_series  # noqa: E402
+from common import joined_series  # noqa: E402
 
 
 def test_a_runs_parts_joined_by_plus_make_one_series_in_order(tmp_path):
