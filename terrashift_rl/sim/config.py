@@ -170,6 +170,13 @@ class TerraShiftConfig:
     """Discount used by the potential-based shaping term, in [0, 1]."""
     alignment_scale: float = 0.0
     """Scale of the velocity-alignment (cosine) term [reward]; 0 turns it off."""
+    approach_scale: float = 0.0
+    """Reward per cell by which a wavelet closes on its nearest active sphere, counted only
+    beyond ``approach_radius`` (a potential, Phi = -scale * that gap, summed over the
+    wavelets; ticks on which a sphere spawns or is resolved earn none) [1/cell]; 0 turns it
+    off."""
+    approach_radius: float = 2.5
+    """Distance from a sphere within which a wavelet earns no approach reward [cells], >= 0."""
     reward_normalizer: float = 4.0
     """The team reward per tick is (time penalty + sum over objects) / reward_normalizer, > 0."""
 
@@ -284,6 +291,7 @@ class TerraShiftConfig:
             "spawn_drop_height",
             "distance_scale",
             "slow_speed",
+            "approach_radius",
         ):
             _check_float(self, name, low=0.0)
         _check_float(self, "restitution", low=0.0, high=1.0, low_open=True)
@@ -296,6 +304,7 @@ class TerraShiftConfig:
             "slow_penalty",
             "potential_scale",
             "alignment_scale",
+            "approach_scale",
         ):
             _check_float(self, name)
         for name in ("wrap_edges", "respawn"):

@@ -129,6 +129,7 @@ def reset_episodes(
     agent_amplitude: wp.array2d(dtype=float),
     agent_sigma: wp.array2d(dtype=wp.vec2),
     agent_frame: wp.array2d(dtype=wp.vec4),
+    approach_gap: wp.array2d(dtype=float),
     goal_cell: wp.array2d(dtype=wp.vec2i),
     active: wp.array2d(dtype=wp.int32),
     spawn_timer: wp.array2d(dtype=wp.int32),
@@ -158,6 +159,7 @@ def reset_episodes(
             uniform(rng, e, model.sigma_min, model.sigma_max),
         )
         agent_frame[e, k] = wavelet_frame(agent_angle[e, k], agent_sigma[e, k])
+        approach_gap[e, k] = -1.0
     # goals on distinct cells, at least two cells apart where the tries allow
     for i in range(model.num_goals):
         cell = random_spawn_cell(model, rng, e)
@@ -218,6 +220,37 @@ def spawn_due(
             )
 
 
+@wp.func
+def approach_gap_of(
+    model: Model,
+    e: int,
+    k: int,
+    agent_position: wp.array2d(dtype=wp.vec2),
+    active: wp.array2d(dtype=wp.int32),
+    position: wp.array2d(dtype=wp.vec3),
+) -> float:
+    """Distance of wavelet ``k`` to its nearest active sphere beyond ``approach_radius``
+    [cells], the short way round a wrapping grid; -1 with no sphere in play."""
+    a = agent_position[e, k]
+    g = float(model.grid_size)
+    nearest = float(-1.0)
+    for j in range(model.num_objects):
+        if active[e, j] != 0:
+            p = position[e, j]
+            # the sphere's centre in the wavelets' cell coordinates (column i sits at x = i)
+            dx = (p[0] + model.half_platform) / model.cell_size - 0.5 - a[0]
+            dy = (p[1] + model.half_platform) / model.cell_size - 0.5 - a[1]
+            if model.wrap_edges != 0:
+                dx = dx - g * wp.floor(dx / g + 0.5)
+                dy = dy - g * wp.floor(dy / g + 0.5)
+            d = wp.sqrt(dx * dx + dy * dy)
+            if nearest < 0.0 or d < nearest:
+                nearest = d
+    if nearest < 0.0:
+        return -1.0
+    return wp.max(nearest - model.approach_radius, 0.0)
+
+
 @wp.kernel
 def begin_decision(reward: wp.array(dtype=float)):
     """Clears the reward accumulated over the action repeat. Launch dim: [num_envs]."""
@@ -236,6 +269,8 @@ def tick_events(
     velocity: wp.array2d(dtype=wp.vec3),
     angular_velocity: wp.array2d(dtype=wp.vec3),
     goal_distance: wp.array2d(dtype=float),
+    agent_position: wp.array2d(dtype=wp.vec2),
+    approach_gap: wp.array2d(dtype=float),
     reward: wp.array(dtype=float),
     episode_goals: wp.array(dtype=wp.int32),
     episode_out_of_bounds: wp.array(dtype=wp.int32),
@@ -244,11 +279,14 @@ def tick_events(
 
     Per active sphere: the goal bonus when within ``goal_radius`` of its goal, else the
     out-of-bounds penalty when it left the box, else the shaping terms (distance improvement,
-    potential, slow-ball penalty, velocity alignment). The tick's team reward is
+    potential, slow-ball penalty, velocity alignment). Per wavelet, with ``approach_scale``:
+    how far it closed on its nearest sphere (:func:`approach_gap_of`) since the last tick,
+    unless a sphere spawned or was resolved on this one. The tick's team reward is
     ``(time_penalty + sum) / reward_normalizer``.
     """
     e = wp.tid()
     total = float(0.0)
+    changed = int(0)  # a sphere spawned or was resolved on this tick
     for j in range(model.num_objects):
         if active[e, j] != 0:
             p = position[e, j]
@@ -283,6 +321,7 @@ def tick_events(
                     total += model.alignment_scale * wp.dot(v, to_goal) / (speed * d)
                 goal_distance[e, j] = d
             if resolved != 0:
+                changed = int(1)
                 active[e, j] = 0
                 if respawns(model, e):
                     spawn_timer[e, j] = model.respawn_ticks
@@ -305,6 +344,14 @@ def tick_events(
                     angular_velocity,
                     goal_distance,
                 )
+                changed = changed + active[e, j]
+    if model.approach_scale != 0.0:
+        for k in range(model.num_agents):
+            gap = approach_gap_of(model, e, k, agent_position, active, position)
+            previous = approach_gap[e, k]
+            if changed == 0 and previous >= 0.0 and gap >= 0.0:
+                total += model.approach_scale * (previous - gap)
+            approach_gap[e, k] = gap
     reward[e] = reward[e] + (model.time_penalty + total) / model.reward_normalizer
 
 

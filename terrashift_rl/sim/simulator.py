@@ -23,6 +23,9 @@ _KERNEL_MODULES = (wave, physics, events, observations)
 _INT32_MAX = 2**31 - 1
 _RENAMED_ARRAYS = {"env_mask": "reset_mask"}
 """Earlier name -> name of the data arrays renamed since checkpoints were first written."""
+_ADDED_ARRAYS = {"approach_gap": -1.0}
+"""Data arrays added since checkpoints were first written -> the value they load as from a
+checkpoint that lacks them."""
 
 
 @wp.kernel
@@ -119,8 +122,12 @@ class Simulator:
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
         """Restores a :meth:`state_dict` (one that holds the scratch arrays too loads as
         well); shapes must match this simulator's. Arrays saved under an earlier name
-        (``_RENAMED_ARRAYS``) load into the array that has it now."""
+        (``_RENAMED_ARRAYS``) load into the array that has it now; arrays added since
+        (``_ADDED_ARRAYS``) take their start value where the state lacks them."""
         state = {_RENAMED_ARRAYS.get(name, name): value for name, value in state.items()}
+        for name, value in _ADDED_ARRAYS.items():
+            if name not in state:
+                state[name] = torch.full_like(self.view(name), value)
         missing = sorted(set(self.state_dict()) - set(state))
         if missing:
             raise ValueError(f"simulator state lacks {missing}")
@@ -233,6 +240,7 @@ class Simulator:
                 d.agent_amplitude,
                 d.agent_sigma,
                 d.agent_frame,
+                d.approach_gap,
                 d.goal_cell,
                 d.sphere_active,
                 d.spawn_timer,
@@ -322,6 +330,8 @@ class Simulator:
                 d.sphere_velocity,
                 d.sphere_angular_velocity,
                 d.goal_distance,
+                d.agent_position,
+                d.approach_gap,
                 d.reward,
                 d.episode_goals,
                 d.episode_out_of_bounds,

@@ -94,6 +94,8 @@ class Model:
     potential_scale: float
     potential_gamma: float
     alignment_scale: float
+    approach_scale: float
+    approach_radius: float
     reward_normalizer: float
 
     heightmap_resolution: int
@@ -240,6 +242,8 @@ def build_model(config: TerraShiftConfig) -> Model:
     m.potential_scale = config.potential_scale
     m.potential_gamma = config.potential_gamma
     m.alignment_scale = config.alignment_scale
+    m.approach_scale = config.approach_scale
+    m.approach_radius = config.approach_radius
     m.reward_normalizer = config.reward_normalizer
 
     m.heightmap_resolution = config.heightmap_resolution
@@ -315,6 +319,10 @@ class Data:
         """Ticks until an inactive sphere (re)spawns; -1 once resolved for good, [num_envs, M]."""
         self.goal_distance = zeros((n, m))
         """Distance of each active sphere to its goal at the last tick [m], [num_envs, M]."""
+        self.approach_gap = wp.full((n, k), -1.0, dtype=float, device=device)
+        """Each wavelet's distance beyond ``approach_radius`` to its nearest active sphere at
+        the last tick [cells], -1 where that is not known (no sphere, a new episode, or
+        ``approach_scale`` 0), [num_envs, K]."""
         self.goal_cell = zeros((n, config.num_goals), wp.vec2i)
         """Column (ix, iy) each goal is attached to, shape [num_envs, num_goals], vec2i."""
         # bookkeeping

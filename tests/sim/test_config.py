@@ -43,6 +43,8 @@ def test_presets_hold_the_paper_settings():
         ({"respawn": "false"}, "respawn must be true or false, got 'false'"),
         ({"respawn_fraction": 1.5}, r"respawn_fraction must be in \[0.0, 1.0\], got 1.5"),
         ({"sigma_max": "wide"}, "sigma_max must be a finite number, got 'wide'"),
+        ({"approach_radius": -1.0}, "approach_radius must be in"),
+        ({"approach_scale": float("inf")}, "approach_scale must be a finite number"),
     ],
 )
 def test_validation_names_the_field(overrides, message):

@@ -257,6 +257,105 @@ def test_team_reward_sums_the_objects_and_divides_by_the_normalizer():
     np.testing.assert_array_equal(sim.view("episode_out_of_bounds").numpy(), [1, 1])
 
 
+def cell_of(cfg: TerraShiftConfig, xy: torch.Tensor) -> torch.Tensor:
+    """A point of the platform [m] in the wavelets' cell coordinates (column i at x = i)."""
+    return (xy + 0.5 * cfg.platform_size) / cfg.cell_size - 0.5
+
+
+def above_cell(cfg: TerraShiftConfig, cx: float, cy: float) -> torch.Tensor:
+    """The point 0.3 m above cell coordinates (cx, cy) [m], as ``cell_of`` inverts."""
+    xy = (torch.tensor([cx, cy]) + 0.5) * cfg.cell_size - 0.5 * cfg.platform_size
+    return torch.tensor([*xy.tolist(), 0.3])
+
+
+def approach_sim(*, gaps: list[float], cells: list[tuple[float, float]], **overrides):
+    """A scene whose reward is the approach term alone, wavelets at ``cells`` with the given
+    gaps known from the last tick."""
+    settings = {"approach_scale": 0.3, "distance_scale": 0.0, "slow_penalty": 0.0}
+    sim = make_sim(num_agents=len(cells), **{**settings, **overrides})
+    sim.view("agent_position").copy_(torch.tensor(cells))
+    sim.view("approach_gap").copy_(torch.tensor(gaps))
+    return sim
+
+
+def test_approach_pays_the_closing_on_the_nearest_sphere_beyond_the_radius():
+    cfg = TerraShiftConfig()
+    torch.testing.assert_close(cell_of(cfg, FAR[:2]), torch.tensor([7.0, 7.0]))
+    cells = [
+        (1.0, 7.0),  # 6 cells left of the first sphere: gap 3.5, 0.4 closer than last tick
+        (7.0, 10.0),  # 2 cells above the second: inside the radius, gap 0, was 0.2
+        (12.0, 8.0),  # 5 cells right of the second: gap 2.5, not known last tick
+    ]
+    sim = approach_sim(gaps=[3.9, 0.2, -1.0], cells=cells)
+    pose(sim, [{"position": FAR}, {"position": above_cell(cfg, 7.0, 8.0)}])
+    expected = team(cfg, 0.3 * (3.9 - 3.5) + 0.3 * (0.2 - 0.0))
+    assert tick(sim) == pytest.approx(expected, abs=REWARD_TOL)
+    np.testing.assert_allclose(sim.view("approach_gap")[0].numpy(), [3.5, 0.0, 2.5], atol=1e-5)
+
+
+@pytest.mark.parametrize(("wrap", "gap"), [(True, 1.0), (False, 14.0)])
+def test_approach_measures_the_short_way_round_a_wrapping_grid(wrap, gap):
+    cfg = TerraShiftConfig()
+    sphere = above_cell(cfg, 0.0, 7.0)  # a wavelet at x = 14 is one cell away, the short way
+    sim = approach_sim(gaps=[gap + 0.25], cells=[(14.0, 7.0)], approach_radius=0.0, wrap_edges=wrap)
+    pose(sim, [{"position": sphere}])
+    assert tick(sim) == pytest.approx(team(cfg, 0.3 * 0.25), abs=REWARD_TOL)
+    assert sim.view("approach_gap")[0, 0].item() == pytest.approx(gap, abs=1e-5)
+
+
+def test_approach_pays_nothing_on_a_tick_that_resolves_a_sphere():
+    cfg = TerraShiftConfig()
+    sim = approach_sim(gaps=[9.0], cells=[(1.0, 7.0)])
+    pose(sim, [{"position": FAR}, {"position": goal_xyz(cfg, 11, 4)}])  # the second scores
+    assert tick(sim) == pytest.approx(team(cfg, cfg.goal_reward), abs=REWARD_TOL)
+    assert sim.view("approach_gap")[0, 0].item() == pytest.approx(3.5, abs=1e-5)
+
+
+def test_approach_is_unknown_without_spheres_and_after_a_reset():
+    sim = approach_sim(gaps=[2.0], cells=[(1.0, 7.0)])
+    pose(sim, [])
+    assert tick(sim) == pytest.approx(team(sim.config), abs=REWARD_TOL)
+    assert sim.view("approach_gap")[0, 0].item() == -1.0
+    sim.view("approach_gap").fill_(2.0)
+    sim.reset()
+    assert sim.view("approach_gap").eq(-1.0).all()
+
+
+def test_approach_sums_over_a_decision_to_the_gap_it_closed():
+    # a wavelet driven towards a still sphere for several decisions: each decision's reward is
+    # the scale times the gap closed over it, measured from the positions alone
+    sim = make_sim(
+        action_repeat=2,
+        approach_scale=0.5,
+        approach_radius=1.0,
+        distance_scale=0.0,
+        slow_penalty=0.0,
+        time_penalty=0.0,
+        gravity=0.0,
+        num_agents=1,
+    )
+    cfg = sim.config
+    sim.reset()
+    make_inert(sim)
+    sim.view("agent_position").copy_(torch.tensor([[[2.0, 7.0]]]))
+    pose(sim, [{"position": FAR}])
+    sphere = cell_of(cfg, FAR[:2])
+    action = torch.zeros(sim.action_shape)
+    action[..., 0] = 1.0  # accelerate along +x, towards the sphere
+
+    def gap() -> float:
+        offset = sphere - sim.view("agent_position")[0, 0]
+        return max(offset.norm().item() - 1.0, 0.0)
+
+    sim.step(action)  # the first tick only learns the gap
+    for _ in range(6):
+        before = gap()
+        sim.step(action)
+        closed = before - gap()
+        assert sim.view("reward")[0].item() == pytest.approx(0.5 * closed / 4.0, abs=REWARD_TOL)
+    assert closed > 0.05  # the wavelet moves fast enough to matter
+
+
 # --- whole decisions ----------------------------------------------------------------------
 
 

@@ -1,5 +1,5 @@
 """Simulator state: a state_dict restores every environment exactly, also one saved before a
-data array was renamed."""
+data array was renamed or added."""
 
 import torch
 
@@ -33,3 +33,12 @@ def test_a_state_saved_under_an_earlier_array_name_loads():
     sim.reset()
     sim.load_state_dict(earlier)
     assert sim.view("reset_mask").tolist() == [True, False, True]
+
+
+def test_a_state_saved_before_an_array_was_added_loads_with_its_start_value():
+    sim = Simulator(CONFIG, num_envs=3, seed=0)
+    sim.reset()
+    state = {name: value for name, value in sim.state_dict().items() if name != "approach_gap"}
+    sim.view("approach_gap").fill_(2.0)
+    sim.load_state_dict(state)
+    assert sim.view("approach_gap").eq(-1.0).all()
