@@ -25,7 +25,12 @@ from torchrl.envs.utils import ExplorationType
 from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training import load_checkpoint, make_training_env
-from terrashift_rl.training.evaluation import actor_policy, evaluate, evaluate_baselines
+from terrashift_rl.training.evaluation import (
+    actor_policy,
+    evaluate,
+    evaluate_baselines,
+    evaluation_scene,
+)
 from terrashift_rl.training.run import (
     BOOLEAN,
     OVERRIDES,
@@ -73,7 +78,7 @@ def main(cfg: DictConfig) -> None:
         scene = TerraShiftConfig(**checkpoint["env_config"])
     else:
         scene = structured(TerraShiftConfig, cfg.env, "env")
-    scene = scene.replace(respawn=cfg.respawn)
+    scene = evaluation_scene(scene, respawn=cfg.respawn)
     results: dict = {"scene": dataclasses.asdict(scene), "episodes": cfg.episodes}
 
     networks = None

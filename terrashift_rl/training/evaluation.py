@@ -17,7 +17,14 @@ from terrashift_rl.sim.config import TerraShiftConfig
 Policy = Callable[[TensorDictBase], TensorDictBase]
 """Anything that writes ``("agents", "action")`` into the tensordict it is given."""
 
-__all__ = ["Policy", "actor_policy", "evaluate", "evaluate_baselines", "evaluate_periodically"]
+__all__ = [
+    "Policy",
+    "actor_policy",
+    "evaluate",
+    "evaluate_baselines",
+    "evaluate_periodically",
+    "evaluation_scene",
+]
 
 HEADLINE = (
     "goal_fraction",
@@ -51,6 +58,19 @@ def _scene_config(env: EnvBase) -> TerraShiftConfig:
             f"{type(env).__name__}"
         )
     return config
+
+
+def evaluation_scene(config: TerraShiftConfig, *, respawn: bool = False) -> TerraShiftConfig:
+    """The scene as an evaluation plays it: ``respawn`` as given (False: evaluation mode), and
+    without the approach shaping, a training aid, so that the reward per decision compares
+    across recipes and with the baselines.
+
+    Example:
+        >>> scene = evaluation_scene(TerraShiftConfig(approach_scale=0.3))
+        >>> scene.respawn, scene.approach_scale
+        (False, 0.0)
+    """
+    return config.replace(respawn=respawn, approach_scale=0.0)
 
 
 def evaluate(
@@ -160,12 +180,12 @@ def evaluate_baselines(
 ) -> dict[str, dict[str, float]]:
     """Scores the random, zero and scripted heuristic policies with :func:`evaluate`.
 
-    Each policy gets a fresh environment built from ``config`` with ``respawn`` and the same
+    Each policy gets a fresh environment of :func:`evaluation_scene` and the same
     ``seed``, so all three face the same initial scenes (goals, first sphere, wavelets);
     the random policy's generator is seeded with ``seed`` too.
 
     Args:
-        config: the scene; its ``respawn`` is replaced by ``respawn``.
+        config: the scene, played as :func:`evaluation_scene` with ``respawn``.
         num_envs: environments, hence episodes, per policy.
         device: where to simulate.
         seed: seed of the environments and of the random policy.
@@ -183,7 +203,7 @@ def evaluate_baselines(
         >>> sorted(scores), scores["zero"]["episodes"]
         (['heuristic', 'random', 'zero'], 2.0)
     """
-    config = config.replace(respawn=respawn)
+    config = evaluation_scene(config, respawn=respawn)
     policies: dict[str, Policy] = {
         "random": RandomPolicy(seed=seed),
         "zero": ZeroPolicy(),

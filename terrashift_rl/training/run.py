@@ -40,7 +40,7 @@ from terrashift_rl.training.checkpoint import (
     remove_stale_temporaries,
     save_checkpoint,
 )
-from terrashift_rl.training.evaluation import evaluate_periodically
+from terrashift_rl.training.evaluation import evaluate_periodically, evaluation_scene
 from terrashift_rl.training.trainer import (
     LOSS_SETTINGS,
     MAPOCATrainer,
@@ -640,9 +640,9 @@ def run_training(cfg: DictConfig, *, run_dir: Path) -> Path:
     trainer = MAPOCATrainer(env, networks, train_config)
     if cfg.run.pretrained:
         trainer.load_weights(pretrained)
-    # evaluation mode (no respawn), the same scenes at every evaluation
+    # evaluation mode (no respawn, no approach shaping), the same scenes at every evaluation
     eval_env = eval_every and make_training_env(
-        env_config.replace(respawn=False),
+        evaluation_scene(env_config),
         networks,
         num_envs=eval_episodes,
         device=device,

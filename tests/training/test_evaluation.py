@@ -116,6 +116,21 @@ def test_training_mode_runs_every_episode_to_the_step_limit():
     assert all(scores["mean_episode_length"] == steps for scores in baselines.values())
 
 
+def test_evaluation_scores_the_reward_without_the_approach_shaping():
+    # the heuristic drives its wavelets to the spheres, which the approach term would pay for
+    n, seed, steps = 4, 3, 48
+    config = CFG.replace(max_episode_steps=steps)
+    shaped = config.replace(approach_scale=1.0)
+    policy = ScriptedHeuristicPolicy(config)
+    trained_on = evaluate(TerraShiftEnv(shaped, num_envs=n, seed=seed), policy, progress=False)
+    plain = evaluate(TerraShiftEnv(config, num_envs=n, seed=seed), policy, progress=False)
+    assert trained_on["mean_reward_per_decision"] != pytest.approx(
+        plain["mean_reward_per_decision"], rel=1e-3
+    )
+    baselines = evaluate_baselines(shaped, num_envs=n, seed=seed)
+    assert baselines["heuristic"] == plain
+
+
 def test_heuristic_beats_random_and_zero():
     # measured (16 envs, 128 decisions, seed 0): goals per episode heuristic 2.56, random 0.0,
     # zero 0.0; mean reward per decision 0.28 vs -0.034 and -0.034
