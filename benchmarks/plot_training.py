@@ -43,6 +43,7 @@ TITLES = {
     "eval_goal_fraction": "goal fraction (evaluation mode)",
     "eval_success_rate": "success rate (evaluation mode)",
     "eval_out_of_bounds_per_episode": "spheres lost per episode (evaluation mode)",
+    "eval_mean_episode_length": "episode length (evaluation mode)",
     **{f"concentration_{name}": f"median Beta α + β, {name}" for name in ACTION_NAMES},
     **{f"action_median_{name}": f"median action, {name}" for name in ACTION_NAMES},
 }
@@ -70,7 +71,9 @@ def main() -> None:
         help="logged metrics to draw, one panel each (the names of the runs' CSV files)",
     )
     args = parser.parse_args()
-    figure = Figure(figsize=(4.4 * len(args.metrics), 3.6), layout="constrained")
+    # a legend beside the panels (more than ten runs) needs a line per run
+    height = 3.6 if len(args.runs) <= 10 else max(3.6, 0.25 * len(args.runs))
+    figure = Figure(figsize=(4.4 * len(args.metrics), height), layout="constrained")
     FigureCanvasAgg(figure)
     axes = figure.subplots(1, len(args.metrics), squeeze=False)[0]
     for ax, metric in zip(axes, args.metrics, strict=True):
