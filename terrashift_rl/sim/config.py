@@ -178,7 +178,8 @@ class TerraShiftConfig:
     approach_radius: float = 2.5
     """Distance from a sphere within which a wavelet earns no approach reward [cells], >= 0."""
     reward_normalizer: float = 4.0
-    """The team reward per tick is (time penalty + sum over objects) / reward_normalizer, > 0."""
+    """The team reward per tick is (time penalty + sum over objects and wavelets) /
+    reward_normalizer, > 0."""
 
     # --- observations ---------------------------------------------------------------------
     heightmap_resolution: int = 32
