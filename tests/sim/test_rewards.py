@@ -352,7 +352,9 @@ def test_approach_sums_over_a_decision_to_the_gap_it_closed():
         before = gap()
         sim.step(action)
         closed = before - gap()
-        assert sim.view("reward")[0].item() == pytest.approx(0.5 * closed / 4.0, abs=REWARD_TOL)
+        assert sim.view("reward")[0].item() == pytest.approx(
+            0.5 * closed / cfg.reward_normalizer, abs=REWARD_TOL
+        )
     assert closed > 0.05  # the wavelet moves fast enough to matter
 
 
