@@ -88,6 +88,10 @@ class TerraShiftConfig:
     """Wavelet angular speed limit [rad / wave step], > 0."""
     max_amplitude: float = 0.06
     """Wavelet amplitude limit, A in [-max_amplitude, max_amplitude] [m], > 0."""
+    min_amplitude_ratio: float = -1.0
+    """The lowest wavelet amplitude as a fraction of ``max_amplitude``: -1, the paper's range,
+    lets a wavelet dig a basin as deep as a bump is high; 0 allows bumps only [ratio], in
+    [-1, 1]."""
     sigma_min: float = 0.2
     """Smallest wavelet width [cells], > 0."""
     sigma_max: float = 2.0
@@ -297,6 +301,7 @@ class TerraShiftConfig:
             _check_float(self, name, low=0.0)
         _check_float(self, "restitution", low=0.0, high=1.0, low_open=True)
         _check_float(self, "respawn_fraction", low=0.0, high=1.0)
+        _check_float(self, "min_amplitude_ratio", low=-1.0, high=1.0)
         _check_float(self, "potential_gamma", low=0.0, high=1.0)
         for name in (
             "goal_reward",

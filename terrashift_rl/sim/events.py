@@ -153,7 +153,7 @@ def reset_episodes(
         agent_angle[e, k] = uniform(rng, e, 0.0, 6.283185307179586)
         omax = model.max_angular_velocity
         agent_angular_velocity[e, k] = uniform(rng, e, -omax, omax)
-        agent_amplitude[e, k] = uniform(rng, e, -model.max_amplitude, model.max_amplitude)
+        agent_amplitude[e, k] = uniform(rng, e, model.min_amplitude, model.max_amplitude)
         agent_sigma[e, k] = wp.vec2(
             uniform(rng, e, model.sigma_min, model.sigma_max),
             uniform(rng, e, model.sigma_min, model.sigma_max),

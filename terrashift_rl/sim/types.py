@@ -56,6 +56,7 @@ class Model:
     max_velocity: float
     max_angular_velocity: float
     max_amplitude: float
+    min_amplitude: float
     sigma_min: float
     sigma_max: float
 
@@ -191,6 +192,7 @@ def build_model(config: TerraShiftConfig) -> Model:
     m.max_velocity = config.max_velocity
     m.max_angular_velocity = config.max_angular_velocity
     m.max_amplitude = config.max_amplitude
+    m.min_amplitude = config.min_amplitude_ratio * config.max_amplitude
     m.sigma_min = config.sigma_min
     m.sigma_max = config.sigma_max
 

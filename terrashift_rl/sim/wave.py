@@ -107,7 +107,7 @@ def update_agents(
     v = v0 + v_gain * d_velocity
     v = wp.vec2(wp.clamp(v[0], -vmax, vmax), wp.clamp(v[1], -vmax, vmax))
     w = wp.clamp(w0 + model.angular_velocity_gain * step * d_omega, -omax, omax)
-    amp = wp.clamp(amp0 + model.amplitude_gain * step * d_amplitude, -amax, amax)
+    amp = wp.clamp(amp0 + model.amplitude_gain * step * d_amplitude, model.min_amplitude, amax)
     s = s0 + model.sigma_gain * step * d_sigma
     s = wp.vec2(
         wp.clamp(s[0], model.sigma_min, model.sigma_max),

@@ -44,6 +44,7 @@ def test_presets_hold_the_paper_settings():
         ({"respawn_fraction": 1.5}, r"respawn_fraction must be in \[0.0, 1.0\], got 1.5"),
         ({"sigma_max": "wide"}, "sigma_max must be a finite number, got 'wide'"),
         ({"approach_radius": -1.0}, "approach_radius must be in"),
+        ({"min_amplitude_ratio": -1.5}, r"min_amplitude_ratio must be in \[-1.0, 1.0\], got -1.5"),
         ({"approach_scale": float("inf")}, "approach_scale must be a finite number"),
     ],
 )

@@ -201,7 +201,7 @@ def reference_tick(state: dict[str, np.ndarray], action: np.ndarray, cfg: TerraS
     )
     amplitude = np.clip(
         state["agent_amplitude"] + cfg.amplitude_gain * h * a[..., 3],
-        -cfg.max_amplitude,
+        cfg.min_amplitude_ratio * cfg.max_amplitude,
         cfg.max_amplitude,
     )
     sigma = np.clip(
@@ -258,12 +258,26 @@ def circular_error(actual: np.ndarray, expected: np.ndarray, period: float) -> n
 
 
 @pytest.mark.parametrize(
-    ("wrap_edges", "action_mode"),
-    [(True, "delta"), (False, "delta"), (True, "target"), (True, "position"), (False, "position")],
+    ("wrap_edges", "action_mode", "min_amplitude_ratio"),
+    [
+        (True, "delta", -1.0),
+        (False, "delta", -1.0),
+        (True, "delta", 0.0),
+        (True, "target", -1.0),
+        (True, "position", -1.0),
+        (False, "position", -1.0),
+    ],
 )
-def test_parameter_dynamics_match_reference_over_several_decisions(wrap_edges, action_mode):
+def test_parameter_dynamics_match_reference_over_several_decisions(
+    wrap_edges, action_mode, min_amplitude_ratio
+):
     sim = make_sim(
-        num_envs=3, num_agents=6, action_repeat=3, wrap_edges=wrap_edges, action_mode=action_mode
+        num_envs=3,
+        num_agents=6,
+        action_repeat=3,
+        wrap_edges=wrap_edges,
+        action_mode=action_mode,
+        min_amplitude_ratio=min_amplitude_ratio,
     )
     cfg = sim.config
     rng = np.random.default_rng(SEED)
@@ -304,6 +318,23 @@ def test_parameter_dynamics_match_reference_over_several_decisions(wrap_edges, a
         np.isclose(state["agent_sigma"], cfg.sigma_min).any()
         or np.isclose(state["agent_sigma"], cfg.sigma_max).any()
     )
+
+
+def test_bumps_only_scene_starts_and_stays_at_or_above_zero_amplitude():
+    sim = make_sim(num_envs=64, num_agents=8, min_amplitude_ratio=0.0)
+    cfg = sim.config
+    start = sim.view("agent_amplitude")
+    assert (start >= 0).all() and (start <= cfg.max_amplitude).all()
+    assert start.min() < 0.1 * cfg.max_amplitude  # drawn over [0, max], not stuck at one end
+    down = torch.zeros(sim.action_shape)
+    down[..., 3] = -1.0
+    for _ in range(12):  # 12 decisions of 2 ticks lower by 1.2 max_amplitude
+        sim.step(down)
+    assert (sim.view("agent_amplitude") == 0.0).all()
+    symmetric = make_sim(num_envs=64, num_agents=8)
+    for _ in range(24):
+        symmetric.step(down)
+    assert (symmetric.view("agent_amplitude") == -cfg.max_amplitude).all()
 
 
 def test_one_tick_from_rest_moves_by_gain_times_step():
