@@ -12,8 +12,10 @@ them:
   the decisions from a sphere's spawn to its goal (median and 90th percentile).
 - **Unresolved.** The share of spheres neither at their goal nor lost when the episode ends at
   the step limit; for those, at the end: their distance to their goal and how much it fell over
-  the last 100 decisions, the distance to the nearest wavelet centre [cells], and the height
-  of the column under them (``-max_column_height`` at the bottom of the deepest basin).
+  the last 100 decisions, their mean speed over those decisions (to compare with the slow
+  penalty's ``slow_speed``), the distance to the nearest wavelet
+  centre [cells], and the height of the column under them (``-max_column_height`` at the
+  bottom of the deepest basin).
 - **Wavelets.** The share of wavelet-decisions with a negative amplitude (a basin rather than a
   bump) and at the amplitude's lower limit.
 
@@ -80,7 +82,7 @@ def endgame(
     resolved_at = torch.full((num_envs, num_objects), -1, device=device)
     at_goal = torch.zeros(num_envs, num_objects, dtype=torch.bool, device=device)
     running = torch.ones(num_envs, dtype=torch.bool, device=device)
-    distances = []  # goal distance [E, M] before each decision
+    distances, speeds = [], []  # goal distance and planar speed [E, M] before each decision
     negative, at_floor, wavelet_decisions = 0, 0, 0
     floor = scene.min_amplitude_ratio * scene.max_amplitude
     td = env.reset()
@@ -88,6 +90,7 @@ def endgame(
         active = sim.view("sphere_active") == 1
         spawned_at = torch.where((spawned_at < 0) & active, t, spawned_at)
         distances.append(sim.view("goal_distance").clone())
+        speeds.append(sim.view("sphere_velocity")[..., :2].norm(dim=-1))
         amplitude = sim.view("agent_amplitude")[running]
         negative += int((amplitude < 0).sum())
         at_floor += int((amplitude <= floor + 1e-6 * scene.max_amplitude).sum())
@@ -111,6 +114,7 @@ def endgame(
     to_goal = (resolved_at - spawned_at + 1)[at_goal]
     end = distances[-1][unresolved]
     before = distances[max(0, len(distances) - 1 - LOOK_BACK)][unresolved]
+    speed = torch.stack(speeds[-LOOK_BACK:]).mean(0)[unresolved]
     return {
         "goal_fraction_by_decision": reached,
         "decisions_to_goal_median": _median(to_goal),
@@ -121,6 +125,7 @@ def endgame(
         "unresolved_fraction": float(unresolved.sum()) / spheres,
         "unresolved_goal_distance_m": _median(end),
         "unresolved_goal_distance_fall_m": _median(before - end),
+        "unresolved_mean_speed_m_per_s": _median(speed),
         "unresolved_nearest_wavelet_cells": _median(nearest_wavelet_cells(sim, scene)[unresolved]),
         "unresolved_column_height_m": _median(column_under(sim, scene)[unresolved]),
         "share_negative_amplitude": negative / max(wavelet_decisions, 1),
@@ -171,6 +176,7 @@ def format_row(row: dict) -> str:
         f"{row['lost_fraction']:.2f}, {row['unresolved_fraction']:.2f}",
         f"{number(row['unresolved_goal_distance_m'])}, "
         f"{number(row['unresolved_goal_distance_fall_m'], 3)}, "
+        f"{number(row['unresolved_mean_speed_m_per_s'])}, "
         f"{number(row['unresolved_nearest_wavelet_cells'], 1)}, "
         f"{number(row['unresolved_column_height_m'], 0, 1000.0)}",
         f"{row['share_negative_amplitude']:.2f}, {row['share_at_amplitude_floor']:.2f}",
@@ -217,7 +223,7 @@ def main() -> None:
         f"| policy | env-steps | goal fraction by decision {', '.join(map(str, MILESTONES))}, "
         "the limit | decisions to goal: median, 90th percentile | lost, unresolved "
         f"| unresolved: goal distance [m], its fall over the last {LOOK_BACK} decisions [m], "
-        "nearest wavelet [cells], column under it [mm] "
+        "mean speed over them [m/s], nearest wavelet [cells], column under it [mm] "
         "| wavelet-decisions: negative amplitude, at the floor |"
     )
     print("|---|---:|---|---|---|---|---|")
