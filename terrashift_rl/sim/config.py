@@ -87,7 +87,8 @@ class TerraShiftConfig:
     max_angular_velocity: float = 0.785
     """Wavelet angular speed limit [rad / wave step], > 0."""
     max_amplitude: float = 0.06
-    """Wavelet amplitude limit, A in [-max_amplitude, max_amplitude] [m], > 0."""
+    """Wavelet amplitude limit, A in [min_amplitude_ratio * max_amplitude, max_amplitude] [m],
+    > 0."""
     min_amplitude_ratio: float = -1.0
     """The lowest wavelet amplitude as a fraction of ``max_amplitude``: -1, the paper's range,
     lets a wavelet dig a basin as deep as a bump is high; 0 allows bumps only [ratio], in
