@@ -72,15 +72,20 @@ def resolution_kind(position: torch.Tensor, scene: TerraShiftConfig) -> str:
     return "goal"
 
 
-def nearest_wavelet_cells(sim, scene: TerraShiftConfig) -> torch.Tensor:
-    """Distance [cells] from every sphere to the nearest wavelet centre, [E, M]; on a grid that
+def wavelet_cells(sim, scene: TerraShiftConfig) -> torch.Tensor:
+    """Distance [cells] from every sphere to every wavelet centre, [E, M, K]; on a grid that
     wraps, the wavelets' positions wrap too."""
     half = 0.5 * scene.platform_size
     sphere = (sim.view("sphere_position")[..., :2] + half) / scene.cell_size - 0.5
     offset = (sim.view("agent_position").unsqueeze(1) - sphere.unsqueeze(2)).abs()
     if scene.wrap_edges:
         offset = torch.minimum(offset, scene.grid_size - offset)  # [E, M, K, 2]
-    return offset.norm(dim=-1).amin(-1)
+    return offset.norm(dim=-1)
+
+
+def nearest_wavelet_cells(sim, scene: TerraShiftConfig) -> torch.Tensor:
+    """Distance [cells] from every sphere to the nearest wavelet centre, [E, M]."""
+    return wavelet_cells(sim, scene).amin(-1)
 
 
 @torch.no_grad()

@@ -14,8 +14,9 @@ them:
   the step limit; for those, at the end: their distance to their goal and how much it fell over
   the last 100 decisions, their mean speed over those decisions (to compare with the slow
   penalty's ``slow_speed``), the distance to the nearest wavelet
-  centre [cells], and the height of the column under them (``-max_column_height`` at the
-  bottom of the deepest basin).
+  centre [cells], the height of the column under them (``-max_column_height`` at the
+  bottom of the deepest basin), and the share of them that no wavelet has as its nearest
+  sphere (left alone) or that every wavelet has (the whole team on one sphere).
 - **Wavelets.** The share of wavelet-decisions with a negative amplitude (a basin rather than a
   bump) and at the amplitude's lower limit.
 
@@ -32,7 +33,7 @@ from pathlib import Path
 
 import torch
 from common import device_name, write_results
-from diagnose_policy import nearest_wavelet_cells, resolution_kind
+from diagnose_policy import nearest_wavelet_cells, resolution_kind, wavelet_cells
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, step_mdp
@@ -60,8 +61,22 @@ def column_under(sim, scene: TerraShiftConfig) -> torch.Tensor:
     return height[env, cell[..., 1], cell[..., 0]]
 
 
+def wavelets_nearest_to(sim, scene: TerraShiftConfig) -> torch.Tensor:
+    """How many wavelets have each sphere as their nearest active sphere, [E, M] (0 for the
+    inactive ones)."""
+    active = sim.view("sphere_active") == 1
+    distance = wavelet_cells(sim, scene).masked_fill(~active.unsqueeze(-1), float("inf"))
+    nearest = distance.argmin(1)  # [E, K]: each wavelet's nearest active sphere
+    counts = torch.nn.functional.one_hot(nearest, active.shape[1]).sum(1)
+    return torch.where(active, counts, 0)
+
+
 def _median(values: torch.Tensor) -> float | None:
     return values.float().median().item() if values.numel() else None
+
+
+def _share(flags: torch.Tensor) -> float | None:
+    return flags.float().mean().item() if flags.numel() else None
 
 
 @torch.no_grad()
@@ -115,6 +130,7 @@ def endgame(
     end = distances[-1][unresolved]
     before = distances[max(0, len(distances) - 1 - LOOK_BACK)][unresolved]
     speed = torch.stack(speeds[-LOOK_BACK:]).mean(0)[unresolved]
+    claims = wavelets_nearest_to(sim, scene)
     return {
         "goal_fraction_by_decision": reached,
         "decisions_to_goal_median": _median(to_goal),
@@ -128,6 +144,8 @@ def endgame(
         "unresolved_mean_speed_m_per_s": _median(speed),
         "unresolved_nearest_wavelet_cells": _median(nearest_wavelet_cells(sim, scene)[unresolved]),
         "unresolved_column_height_m": _median(column_under(sim, scene)[unresolved]),
+        "unresolved_share_left_alone": _share(claims[unresolved] == 0),
+        "unresolved_share_with_every_wavelet": _share(claims[unresolved] == scene.num_agents),
         "share_negative_amplitude": negative / max(wavelet_decisions, 1),
         "share_at_amplitude_floor": at_floor / max(wavelet_decisions, 1),
     }
@@ -179,6 +197,8 @@ def format_row(row: dict) -> str:
         f"{number(row['unresolved_mean_speed_m_per_s'])}, "
         f"{number(row['unresolved_nearest_wavelet_cells'], 1)}, "
         f"{number(row['unresolved_column_height_m'], 0, 1000.0)}",
+        f"{number(row['unresolved_share_left_alone'])}, "
+        f"{number(row['unresolved_share_with_every_wavelet'])}",
         f"{row['share_negative_amplitude']:.2f}, {row['share_at_amplitude_floor']:.2f}",
     ]
     return "| " + " | ".join(cells) + " |"
@@ -224,9 +244,10 @@ def main() -> None:
         "the limit | decisions to goal: median, 90th percentile | lost, unresolved "
         f"| unresolved: goal distance [m], its fall over the last {LOOK_BACK} decisions [m], "
         "mean speed over them [m/s], nearest wavelet [cells], column under it [mm] "
+        "| unresolved: no wavelet's nearest sphere, every wavelet's "
         "| wavelet-decisions: negative amplitude, at the floor |"
     )
-    print("|---|---:|---|---|---|---|---|")
+    print("|---|---:|---|---|---|---|---|---|")
     scenes = []
     for path in args.checkpoints:
         row, scene = checkpoint_row(path, args, device)

@@ -13,7 +13,7 @@ import endgame  # noqa: E402
 
 from terrashift_rl.envs import TerraShiftEnv
 from terrashift_rl.envs.baselines import ScriptedHeuristicPolicy
-from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.sim import Simulator, TerraShiftConfig
 from terrashift_rl.training.evaluation import evaluate
 
 SCENE = TerraShiftConfig(respawn=False, max_episode_steps=120)
@@ -62,3 +62,17 @@ def test_a_training_scene_is_refused():
     env = TerraShiftEnv(TerraShiftConfig(max_episode_steps=8), num_envs=2, seed=0)
     with pytest.raises(ValueError, match="evaluation mode"):
         endgame.endgame(env, env.sim, ScriptedHeuristicPolicy(env.config), env.config)
+
+
+def test_each_wavelet_counts_for_its_nearest_active_sphere_the_short_way_round():
+    scene = TerraShiftConfig(num_agents=5, num_objects=3, num_goals=3)
+    sim = Simulator(scene, num_envs=1, seed=0)
+    sim.reset()
+    cells = torch.tensor([[[2.0, 2.0], [10.0, 2.0], [2.0, 10.0]]])
+    sim.view("sphere_position")[..., :2].copy_((cells + 0.5) * scene.cell_size - 0.5)
+    sim.view("sphere_active").copy_(torch.tensor([[1, 1, 0]], dtype=torch.int32))
+    # (2, 9) lies nearest the inactive sphere 2, then sphere 0; (14, 2) is 3 cells from
+    # sphere 0 round the wrapping edge and 4 from sphere 1
+    agents = [[3.0, 2.0], [2.0, 3.0], [9.0, 2.0], [2.0, 9.0], [14.0, 2.0]]
+    sim.view("agent_position").copy_(torch.tensor([agents]))
+    assert endgame.wavelets_nearest_to(sim, scene).tolist() == [[4, 1, 0]]
