@@ -4,19 +4,19 @@ goals, and where the spheres still in play at the step limit sit.
     python benchmarks/endgame.py <run dir>/checkpoints/last.pt ... --heuristic
 
 Per checkpoint (``last.pt`` or ``best.pt`` of a recipe run), on its scene in evaluation mode
-(:func:`~terrashift_rl.training.evaluation_scene`: no respawn; the Beta mean), one episode in
-each of ``--envs`` environments of seed ``--seed``'s scenes, as the periodic evaluation plays
-them:
+(:func:`~terrashift_rl.training.evaluation.evaluation_scene`: no respawn; the Beta mean), one
+episode in each of ``--envs`` environments of seed ``--seed``'s scenes, as the periodic
+evaluation plays them:
 
 - **Pace.** The goal fraction reached by decisions 100, 200, 300, 400 and the step limit, and
   the decisions from a sphere's spawn to its goal (median and 90th percentile).
 - **Unresolved.** The share of spheres neither at their goal nor lost when the episode ends at
   the step limit; for those, at the end: their distance to their goal and how much it fell over
   the last 100 decisions, their mean speed over those decisions (to compare with the slow
-  penalty's ``slow_speed``), the distance to the nearest wavelet
-  centre [cells], the height of the column under them (``-max_column_height`` at the
-  bottom of the deepest basin), and the share of them that no wavelet has as its nearest
-  sphere (left alone) or that every wavelet has (the whole team on one sphere).
+  penalty's ``slow_speed``), the distance to the nearest wavelet centre [cells], the height of
+  the column under them (``-max_column_height`` at the bottom of the deepest basin), and the
+  share of them that no wavelet has as its nearest sphere (left alone) or that every wavelet
+  has (the whole team on one sphere).
 - **Wavelets.** The share of wavelet-decisions with a negative amplitude (a basin rather than a
   bump) and at the amplitude's lower limit.
 
