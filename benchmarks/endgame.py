@@ -248,18 +248,19 @@ def main() -> None:
         "| wavelet-decisions: negative amplitude, at the floor |"
     )
     print("|---|---:|---|---|---|---|---|---|")
-    scenes = []
+
+    def record(row: dict) -> None:
+        payload["rows"].append(row)
+        print(format_row(row), flush=True)
+        write_results(args.out, payload)
+
+    first_scene = None
     for path in args.checkpoints:
         row, scene = checkpoint_row(path, args, device)
-        scenes.append(scene)
-        payload["rows"].append(row)
-        print(format_row(row), flush=True)
-        write_results(args.out, payload)
+        first_scene = first_scene or scene
+        record(row)
     if args.heuristic:
-        row = heuristic_row(scenes[0] if scenes else TerraShiftConfig(), args, device)
-        payload["rows"].append(row)
-        print(format_row(row), flush=True)
-        write_results(args.out, payload)
+        record(heuristic_row(first_scene or TerraShiftConfig(), args, device))
     print(f"wrote {args.out}")
 
 
