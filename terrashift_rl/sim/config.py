@@ -180,8 +180,14 @@ class TerraShiftConfig:
     beyond ``approach_radius`` (a potential, Phi = -scale * that gap, summed over the
     wavelets; ticks on which a sphere spawns or is resolved earn none) [1/cell]; 0 turns it
     off."""
+    sphere_approach_scale: float = 0.0
+    """Reward per cell by which each active sphere's nearest wavelet closes on it, counted
+    only beyond ``approach_radius`` (a potential, Phi = -scale * that gap, summed over the
+    spheres, so that a sphere no wavelet attends costs the team; a sphere's first tick in
+    play earns none) [1/cell]; 0 turns it off."""
     approach_radius: float = 2.5
-    """Distance from a sphere within which a wavelet earns no approach reward [cells], >= 0."""
+    """Distance from a sphere within which a wavelet earns no approach reward (either
+    term) [cells], >= 0."""
     reward_normalizer: float = 4.0
     """The team reward per tick is (time penalty + sum over objects and wavelets) /
     reward_normalizer, > 0."""
@@ -312,6 +318,7 @@ class TerraShiftConfig:
             "potential_scale",
             "alignment_scale",
             "approach_scale",
+            "sphere_approach_scale",
         ):
             _check_float(self, name)
         for name in ("wrap_edges", "respawn"):

@@ -130,6 +130,7 @@ def reset_episodes(
     agent_sigma: wp.array2d(dtype=wp.vec2),
     agent_frame: wp.array2d(dtype=wp.vec4),
     approach_gap: wp.array2d(dtype=float),
+    sphere_approach_gap: wp.array2d(dtype=float),
     goal_cell: wp.array2d(dtype=wp.vec2i),
     active: wp.array2d(dtype=wp.int32),
     spawn_timer: wp.array2d(dtype=wp.int32),
@@ -176,6 +177,7 @@ def reset_episodes(
     for j in range(model.num_objects):
         active[e, j] = 0
         spawn_timer[e, j] = j * model.respawn_ticks
+        sphere_approach_gap[e, j] = -1.0
     step_count[e] = 0
     reward[e] = 0.0
     terminated[e] = False
@@ -221,6 +223,19 @@ def spawn_due(
 
 
 @wp.func
+def cell_distance(model: Model, a: wp.vec2, p: wp.vec3) -> float:
+    """Distance from a wavelet centre ``a`` [cells] to a sphere centre ``p`` [m] in the
+    wavelets' cell coordinates (column i sits at x = i), the short way round a wrapping grid."""
+    g = float(model.grid_size)
+    dx = (p[0] + model.half_platform) / model.cell_size - 0.5 - a[0]
+    dy = (p[1] + model.half_platform) / model.cell_size - 0.5 - a[1]
+    if model.wrap_edges != 0:
+        dx = dx - g * wp.floor(dx / g + 0.5)
+        dy = dy - g * wp.floor(dy / g + 0.5)
+    return wp.sqrt(dx * dx + dy * dy)
+
+
+@wp.func
 def approach_gap_of(
     model: Model,
     e: int,
@@ -230,24 +245,30 @@ def approach_gap_of(
     position: wp.array2d(dtype=wp.vec3),
 ) -> float:
     """Distance of wavelet ``k`` to its nearest active sphere beyond ``approach_radius``
-    [cells], the short way round a wrapping grid; -1 with no sphere in play."""
-    a = agent_position[e, k]
-    g = float(model.grid_size)
+    [cells]; -1 with no sphere in play."""
     nearest = float(-1.0)
     for j in range(model.num_objects):
         if active[e, j] != 0:
-            p = position[e, j]
-            # the sphere's centre in the wavelets' cell coordinates (column i sits at x = i)
-            dx = (p[0] + model.half_platform) / model.cell_size - 0.5 - a[0]
-            dy = (p[1] + model.half_platform) / model.cell_size - 0.5 - a[1]
-            if model.wrap_edges != 0:
-                dx = dx - g * wp.floor(dx / g + 0.5)
-                dy = dy - g * wp.floor(dy / g + 0.5)
-            d = wp.sqrt(dx * dx + dy * dy)
+            d = cell_distance(model, agent_position[e, k], position[e, j])
             if nearest < 0.0 or d < nearest:
                 nearest = d
     if nearest < 0.0:
         return -1.0
+    return wp.max(nearest - model.approach_radius, 0.0)
+
+
+@wp.func
+def sphere_approach_gap_of(
+    model: Model,
+    e: int,
+    j: int,
+    agent_position: wp.array2d(dtype=wp.vec2),
+    position: wp.array2d(dtype=wp.vec3),
+) -> float:
+    """Distance of sphere ``j`` to its nearest wavelet beyond ``approach_radius`` [cells]."""
+    nearest = cell_distance(model, agent_position[e, 0], position[e, j])
+    for k in range(1, model.num_agents):
+        nearest = wp.min(nearest, cell_distance(model, agent_position[e, k], position[e, j]))
     return wp.max(nearest - model.approach_radius, 0.0)
 
 
@@ -271,6 +292,7 @@ def tick_events(
     goal_distance: wp.array2d(dtype=float),
     agent_position: wp.array2d(dtype=wp.vec2),
     approach_gap: wp.array2d(dtype=float),
+    sphere_approach_gap: wp.array2d(dtype=float),
     reward: wp.array(dtype=float),
     episode_goals: wp.array(dtype=wp.int32),
     episode_out_of_bounds: wp.array(dtype=wp.int32),
@@ -281,7 +303,9 @@ def tick_events(
     out-of-bounds penalty when it left the box, else the shaping terms (distance improvement,
     potential, slow-ball penalty, velocity alignment). Per wavelet, with ``approach_scale``:
     how far it closed on its nearest sphere (:func:`approach_gap_of`) since the last tick,
-    unless a sphere spawned or was resolved on this one. The tick's team reward is
+    unless a sphere spawned or was resolved on this one. Per sphere in play on this tick and
+    the last, with ``sphere_approach_scale``: how far its nearest wavelet closed on it
+    (:func:`sphere_approach_gap_of`). The tick's team reward is
     ``(time_penalty + sum) / reward_normalizer``.
     """
     e = wp.tid()
@@ -352,6 +376,15 @@ def tick_events(
             if changed == 0 and previous >= 0.0 and gap >= 0.0:
                 total += model.approach_scale * (previous - gap)
             approach_gap[e, k] = gap
+    if model.sphere_approach_scale != 0.0:
+        for j in range(model.num_objects):
+            gap = float(-1.0)
+            if active[e, j] != 0:
+                gap = sphere_approach_gap_of(model, e, j, agent_position, position)
+                previous = sphere_approach_gap[e, j]
+                if previous >= 0.0:
+                    total += model.sphere_approach_scale * (previous - gap)
+            sphere_approach_gap[e, j] = gap
     reward[e] = reward[e] + (model.time_penalty + total) / model.reward_normalizer
 
 

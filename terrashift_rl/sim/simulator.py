@@ -23,7 +23,7 @@ _KERNEL_MODULES = (wave, physics, events, observations)
 _INT32_MAX = 2**31 - 1
 _RENAMED_ARRAYS = {"env_mask": "reset_mask"}
 """Earlier name -> name of the data arrays renamed since checkpoints were first written."""
-_ADDED_ARRAYS = {"approach_gap": -1.0}
+_ADDED_ARRAYS = {"approach_gap": -1.0, "sphere_approach_gap": -1.0}
 """Data arrays added since checkpoints were first written -> the value they load as from a
 checkpoint that lacks them."""
 
@@ -241,6 +241,7 @@ class Simulator:
                 d.agent_sigma,
                 d.agent_frame,
                 d.approach_gap,
+                d.sphere_approach_gap,
                 d.goal_cell,
                 d.sphere_active,
                 d.spawn_timer,
@@ -332,6 +333,7 @@ class Simulator:
                 d.goal_distance,
                 d.agent_position,
                 d.approach_gap,
+                d.sphere_approach_gap,
                 d.reward,
                 d.episode_goals,
                 d.episode_out_of_bounds,

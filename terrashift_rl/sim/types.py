@@ -96,6 +96,7 @@ class Model:
     potential_gamma: float
     alignment_scale: float
     approach_scale: float
+    sphere_approach_scale: float
     approach_radius: float
     reward_normalizer: float
 
@@ -245,6 +246,7 @@ def build_model(config: TerraShiftConfig) -> Model:
     m.potential_gamma = config.potential_gamma
     m.alignment_scale = config.alignment_scale
     m.approach_scale = config.approach_scale
+    m.sphere_approach_scale = config.sphere_approach_scale
     m.approach_radius = config.approach_radius
     m.reward_normalizer = config.reward_normalizer
 
@@ -325,6 +327,10 @@ class Data:
         """Each wavelet's distance beyond ``approach_radius`` to its nearest active sphere at
         the last tick [cells], -1 where that is not known (no sphere, a new episode, or
         ``approach_scale`` 0), [num_envs, K]."""
+        self.sphere_approach_gap = wp.full((n, m), -1.0, dtype=float, device=device)
+        """Each sphere's distance beyond ``approach_radius`` to its nearest wavelet at the last
+        tick [cells], -1 where that is not known (the sphere not in play, or
+        ``sphere_approach_scale`` 0), [num_envs, M]."""
         self.goal_cell = zeros((n, config.num_goals), wp.vec2i)
         """Column (ix, iy) each goal is attached to, shape [num_envs, num_goals], vec2i."""
         # bookkeeping

@@ -46,6 +46,7 @@ def test_presets_hold_the_paper_settings():
         ({"approach_radius": -1.0}, "approach_radius must be in"),
         ({"min_amplitude_ratio": -1.5}, r"min_amplitude_ratio must be in \[-1.0, 1.0\], got -1.5"),
         ({"approach_scale": float("inf")}, "approach_scale must be a finite number"),
+        ({"sphere_approach_scale": float("nan")}, "sphere_approach_scale must be a finite number"),
     ],
 )
 def test_validation_names_the_field(overrides, message):

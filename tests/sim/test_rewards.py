@@ -321,6 +321,66 @@ def test_approach_is_unknown_without_spheres_and_after_a_reset():
     assert sim.view("approach_gap").eq(-1.0).all()
 
 
+def sphere_approach_sim(*, gaps: list[float], cells: list[tuple[float, float]], **overrides):
+    """A scene whose reward is the per-sphere approach term alone, wavelets at ``cells`` and
+    the spheres' gaps known from the last tick."""
+    settings = {"sphere_approach_scale": 0.3, "distance_scale": 0.0, "slow_penalty": 0.0}
+    sim = make_sim(num_agents=len(cells), **{**settings, **overrides})
+    sim.view("agent_position").copy_(torch.tensor(cells))
+    sim.view("sphere_approach_gap").copy_(torch.tensor(gaps))
+    return sim
+
+
+def test_sphere_approach_pays_each_spheres_nearest_wavelet_closing_on_it():
+    cfg = TerraShiftConfig()
+    cells = [
+        (7.0, 1.0),  # 6 cells below the first sphere (7, 7), 7 from the second
+        (7.0, 12.0),  # 4 cells above the second sphere (7, 8), 5 from the first
+    ]
+    # first sphere: nearest wavelet 5 cells away, gap 2.5, 0.5 closer than last tick;
+    # second: nearest 4 cells away, gap 1.5, 0.25 farther; third: spawns on this tick
+    sim = sphere_approach_sim(gaps=[3.0, 1.25, -1.0], cells=cells)
+    pose(sim, [{"position": FAR}, {"position": above_cell(cfg, 7.0, 8.0)}])
+    sim.view("spawn_timer")[0, 2] = 1  # the third sphere enters play on this tick
+    expected = team(cfg, 0.3 * (3.0 - 2.5) + 0.3 * (1.25 - 1.5))
+    assert tick(sim) == pytest.approx(expected, abs=REWARD_TOL)
+    assert sim.view("sphere_active")[0, 2].item() == 1
+    gaps = sim.view("sphere_approach_gap")[0]
+    np.testing.assert_allclose(gaps[:2].numpy(), [2.5, 1.5], atol=1e-5)
+    assert gaps[2].item() >= 0.0  # known from now on
+
+
+def test_sphere_approach_pays_a_sphere_left_alone_that_a_second_wavelet_would_not_see():
+    # two wavelets at one sphere and a second sphere far from both: the per-wavelet term pays
+    # nothing for moving one wavelet there, the per-sphere term does
+    cfg = TerraShiftConfig()
+    spheres = [{"position": FAR}, {"position": above_cell(cfg, 1.0, 1.0)}]
+    cells = [(7.0, 7.0), (7.0, 7.0)]
+    rewards = {}
+    for cell in ((7.0, 7.0), (4.0, 4.0)):  # the second wavelet stays, or moves 3 cells diagonally
+        sim = sphere_approach_sim(gaps=[-1.0, -1.0, -1.0], cells=cells)
+        pose(sim, spheres)
+        tick(sim)
+        sim.view("agent_position")[0, 1] = torch.tensor(cell)
+        rewards[cell] = tick(sim)
+    left_alone = 6.0 * 2**0.5 - 2.5
+    closer = 3.0 * 2**0.5 - 2.5
+    assert rewards[(7.0, 7.0)] == pytest.approx(team(cfg), abs=REWARD_TOL)
+    assert rewards[(4.0, 4.0)] == pytest.approx(team(cfg, 0.3 * (left_alone - closer)), abs=1e-4)
+
+
+def test_sphere_approach_pays_nothing_for_a_sphere_resolved_and_forgets_it():
+    cfg = TerraShiftConfig()
+    sim = sphere_approach_sim(gaps=[9.0, 9.0, -1.0], cells=[(1.0, 7.0)])
+    pose(sim, [{"position": FAR}, {"position": goal_xyz(cfg, 11, 4)}])  # the second scores
+    expected = team(cfg, 0.3 * (9.0 - 3.5) + cfg.goal_reward)
+    assert tick(sim) == pytest.approx(expected, abs=REWARD_TOL)
+    np.testing.assert_allclose(sim.view("sphere_approach_gap")[0].numpy(), [3.5, -1, -1], atol=1e-5)
+    sim.view("sphere_approach_gap").fill_(2.0)
+    sim.reset()
+    assert sim.view("sphere_approach_gap").eq(-1.0).all()
+
+
 def test_approach_sums_over_a_decision_to_the_gap_it_closed():
     # a wavelet driven towards a still sphere for several decisions: each decision's reward is
     # the scale times the gap closed over it, measured from the positions alone

@@ -1,6 +1,7 @@
 """Simulator state: a state_dict restores every environment exactly, also one saved before a
 data array was renamed or added."""
 
+import pytest
 import torch
 
 from terrashift_rl.sim import Simulator, TerraShiftConfig
@@ -35,10 +36,11 @@ def test_a_state_saved_under_an_earlier_array_name_loads():
     assert sim.view("reset_mask").tolist() == [True, False, True]
 
 
-def test_a_state_saved_before_an_array_was_added_loads_with_its_start_value():
+@pytest.mark.parametrize("added", ["approach_gap", "sphere_approach_gap"])
+def test_a_state_saved_before_an_array_was_added_loads_with_its_start_value(added):
     sim = Simulator(CONFIG, num_envs=3, seed=0)
     sim.reset()
-    state = {name: value for name, value in sim.state_dict().items() if name != "approach_gap"}
-    sim.view("approach_gap").fill_(2.0)
+    state = {name: value for name, value in sim.state_dict().items() if name != added}
+    sim.view(added).fill_(2.0)
     sim.load_state_dict(state)
-    assert sim.view("approach_gap").eq(-1.0).all()
+    assert sim.view(added).eq(-1.0).all()

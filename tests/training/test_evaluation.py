@@ -116,11 +116,12 @@ def test_training_mode_runs_every_episode_to_the_step_limit():
     assert all(scores["mean_episode_length"] == steps for scores in baselines.values())
 
 
-def test_evaluation_scores_the_reward_without_the_approach_shaping():
-    # the heuristic drives its wavelets to the spheres, which the approach term would pay for
+@pytest.mark.parametrize("term", ["approach_scale", "sphere_approach_scale"])
+def test_evaluation_scores_the_reward_without_the_approach_shaping(term):
+    # the heuristic drives its wavelets to the spheres, which either approach term would pay for
     n, seed, steps = 4, 3, 48
     config = CFG.replace(max_episode_steps=steps)
-    shaped = config.replace(approach_scale=1.0)
+    shaped = config.replace(**{term: 1.0})
     policy = ScriptedHeuristicPolicy(config)
     trained_on = evaluate(TerraShiftEnv(shaped, num_envs=n, seed=seed), policy, progress=False)
     plain = evaluate(TerraShiftEnv(config, num_envs=n, seed=seed), policy, progress=False)
