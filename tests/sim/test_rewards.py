@@ -350,9 +350,9 @@ def test_sphere_approach_pays_each_spheres_nearest_wavelet_closing_on_it():
     assert gaps[2].item() >= 0.0  # known from now on
 
 
-def test_sphere_approach_pays_a_sphere_left_alone_that_a_second_wavelet_would_not_see():
-    # two wavelets at one sphere and a second sphere far from both: the per-wavelet term pays
-    # nothing for moving one wavelet there, the per-sphere term does
+def test_sphere_approach_pays_a_wavelet_for_leaving_the_team_for_a_lone_sphere():
+    # two wavelets at one sphere and a second sphere far from both: the per-wavelet term would
+    # charge the wavelet that moves off towards the lone sphere, the per-sphere term pays it
     cfg = TerraShiftConfig()
     spheres = [{"position": FAR}, {"position": above_cell(cfg, 1.0, 1.0)}]
     cells = [(7.0, 7.0), (7.0, 7.0)]
