@@ -268,13 +268,17 @@ def above_cell(cfg: TerraShiftConfig, cx: float, cy: float) -> torch.Tensor:
     return torch.tensor([*xy.tolist(), 0.3])
 
 
-def approach_sim(*, gaps: list[float], cells: list[tuple[float, float]], **overrides):
-    """A scene whose reward is the approach term alone, wavelets at ``cells`` with the given
-    gaps known from the last tick."""
-    settings = {"approach_scale": 0.3, "distance_scale": 0.0, "slow_penalty": 0.0}
+def approach_sim(
+    *, gaps: list[float], cells: list[tuple[float, float]], per_sphere: bool = False, **overrides
+):
+    """A scene whose reward is one approach term alone at scale 0.3 (per wavelet, or with
+    ``per_sphere`` per sphere), wavelets at ``cells`` and the term's gaps (one per wavelet or
+    per sphere slot) known from the last tick."""
+    term = "sphere_approach" if per_sphere else "approach"
+    settings = {f"{term}_scale": 0.3, "distance_scale": 0.0, "slow_penalty": 0.0}
     sim = make_sim(num_agents=len(cells), **{**settings, **overrides})
     sim.view("agent_position").copy_(torch.tensor(cells))
-    sim.view("approach_gap").copy_(torch.tensor(gaps))
+    sim.view(f"{term}_gap").copy_(torch.tensor(gaps))
     return sim
 
 
@@ -321,16 +325,6 @@ def test_approach_is_unknown_without_spheres_and_after_a_reset():
     assert sim.view("approach_gap").eq(-1.0).all()
 
 
-def sphere_approach_sim(*, gaps: list[float], cells: list[tuple[float, float]], **overrides):
-    """A scene whose reward is the per-sphere approach term alone, wavelets at ``cells`` and
-    the spheres' gaps known from the last tick."""
-    settings = {"sphere_approach_scale": 0.3, "distance_scale": 0.0, "slow_penalty": 0.0}
-    sim = make_sim(num_agents=len(cells), **{**settings, **overrides})
-    sim.view("agent_position").copy_(torch.tensor(cells))
-    sim.view("sphere_approach_gap").copy_(torch.tensor(gaps))
-    return sim
-
-
 def test_sphere_approach_pays_each_spheres_nearest_wavelet_closing_on_it():
     cfg = TerraShiftConfig()
     cells = [
@@ -339,7 +333,7 @@ def test_sphere_approach_pays_each_spheres_nearest_wavelet_closing_on_it():
     ]
     # first sphere: nearest wavelet 5 cells away, gap 2.5, 0.5 closer than last tick;
     # second: nearest 4 cells away, gap 1.5, 0.25 farther; third: spawns on this tick
-    sim = sphere_approach_sim(gaps=[3.0, 1.25, -1.0], cells=cells)
+    sim = approach_sim(gaps=[3.0, 1.25, -1.0], cells=cells, per_sphere=True)
     pose(sim, [{"position": FAR}, {"position": above_cell(cfg, 7.0, 8.0)}])
     sim.view("spawn_timer")[0, 2] = 1  # the third sphere enters play on this tick
     expected = team(cfg, 0.3 * (3.0 - 2.5) + 0.3 * (1.25 - 1.5))
@@ -358,7 +352,7 @@ def test_sphere_approach_pays_a_wavelet_for_leaving_the_team_for_a_lone_sphere()
     cells = [(7.0, 7.0), (7.0, 7.0)]
     rewards = {}
     for cell in ((7.0, 7.0), (4.0, 4.0)):  # the second wavelet stays, or moves 3 cells diagonally
-        sim = sphere_approach_sim(gaps=[-1.0, -1.0, -1.0], cells=cells)
+        sim = approach_sim(gaps=[-1.0, -1.0, -1.0], cells=cells, per_sphere=True)
         pose(sim, spheres)
         tick(sim)
         sim.view("agent_position")[0, 1] = torch.tensor(cell)
@@ -371,7 +365,7 @@ def test_sphere_approach_pays_a_wavelet_for_leaving_the_team_for_a_lone_sphere()
 
 def test_sphere_approach_pays_nothing_for_a_sphere_resolved_and_forgets_it():
     cfg = TerraShiftConfig()
-    sim = sphere_approach_sim(gaps=[9.0, 9.0, -1.0], cells=[(1.0, 7.0)])
+    sim = approach_sim(gaps=[9.0, 9.0, -1.0], cells=[(1.0, 7.0)], per_sphere=True)
     pose(sim, [{"position": FAR}, {"position": goal_xyz(cfg, 11, 4)}])  # the second scores
     expected = team(cfg, 0.3 * (9.0 - 3.5) + cfg.goal_reward)
     assert tick(sim) == pytest.approx(expected, abs=REWARD_TOL)
