@@ -108,12 +108,14 @@ class ScriptedHeuristicPolicy:
     position loop, that is, PD on the position. With ``target`` actions it is ``v*`` itself
     (over the speed limit), and the simulator's rate-limited tracking closes the loop; with
     ``position`` actions it is the point ``v* / position_gain`` (the scene's servo gain) from
-    the wavelet, towards which the simulator's servo aims that same velocity.
+    the wavelet, towards which the simulator's servo aims that same velocity; ``shape``
+    actions move it as ``delta`` actions do.
 
     **Shape.** The same rule drives the other parameters to set points: amplitude towards
     ``amplitude * max_amplitude`` once the wavelet is within ``engage_distance`` cells of its
     target (towards zero while it travels, so it does not bump spheres on its way), both widths
-    towards ``sigma`` cells, and the spin towards zero.
+    towards ``sigma`` cells, and the spin towards zero. With ``target`` and ``shape`` actions
+    the amplitude and width actions are those set points themselves.
 
     Args:
         config: the scene's config (grid, platform, gains, limits, timing).
@@ -233,19 +235,23 @@ class ScriptedHeuristicPolicy:
         # shape set points: a positive bump of width sigma, no spin; flat while travelling
         close = engaged & (distance <= self.engage_distance)
         amplitude_target = torch.where(close, self.amplitude * cfg.max_amplitude, 0.0)
-        if cfg.action_mode == "target":
+        # a set point is the action itself where the mode sets targets; otherwise the action
+        # is the error over the change that one decision of full action produces
+        per_decision = cfg.wave_step * cfg.action_repeat
+        if cfg.action_mode in ("target", "shape"):
             half_range = 0.5 * (cfg.sigma_max - cfg.sigma_min)
-            move = desired / cfg.max_velocity
-            turn = torch.zeros_like(spin)
             grow = amplitude_target / cfg.max_amplitude
             width = (self.sigma - cfg.sigma_min) / half_range - 1.0 if half_range > 0 else 0.0
             widen = torch.full_like(widths, width)
-        else:  # the change one decision of full action produces closes the error
-            per_decision = cfg.wave_step * cfg.action_repeat
-            move = (desired - velocity) / (cfg.velocity_gain * per_decision)
-            turn = -spin / (cfg.angular_velocity_gain * per_decision)
+        else:
             grow = (amplitude_target - amplitude) / (cfg.amplitude_gain * per_decision)
             widen = (self.sigma - widths) / (cfg.sigma_gain * per_decision)
+        if cfg.action_mode == "target":
+            move = desired / cfg.max_velocity
+            turn = torch.zeros_like(spin)
+        else:
+            move = (desired - velocity) / (cfg.velocity_gain * per_decision)
+            turn = -spin / (cfg.angular_velocity_gain * per_decision)
             if cfg.action_mode == "position":
                 # the point whose offset the simulator's servo turns into that same velocity
                 aim = position + desired / cfg.position_gain

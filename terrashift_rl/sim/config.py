@@ -16,9 +16,10 @@ from typing import Any
 COLUMN_SHAPES = ("ellipsoid", "box", "smooth")
 """Column shapes: ellipsoids (the paper's), boxes (classic pins), a smooth interpolated surface."""
 
-ACTION_MODES = ("delta", "target", "position")
-"""What an action sets: the change of each wavelet quantity (the paper's), its target value, or
-the wavelet's target position (and the change of the rest)."""
+ACTION_MODES = ("delta", "target", "position", "shape")
+"""What an action sets: the change of each wavelet quantity (the paper's), its target value,
+the wavelet's target position (and the change of the rest), or the change of the rates and the
+target of the shape."""
 
 
 @dataclass
@@ -58,7 +59,8 @@ class TerraShiftConfig:
     num_agents: int = 8
     """Wave agents K (one Gaussian wavelet each) [count], >= 1."""
     action_mode: str = "delta"
-    """What an action in [-1, 1] sets, one of ``delta``, ``target`` or ``position``. ``delta``
+    """What an action in [-1, 1] sets, one of ``delta``, ``target``, ``position`` or ``shape``.
+    ``delta``
     (the paper's): the change of each wavelet quantity per physics tick,
     ``gain * wave_step * action``. ``target``: the value each quantity moves towards, mapped
     from [-1, 1] onto its range (velocities, spin and amplitude onto +-their limits, widths onto
@@ -68,7 +70,10 @@ class TerraShiftConfig:
     ``(a + 1) * G / 2``), and its velocity moves, as with ``target``, towards
     ``position_gain`` times the offset to there (the short way round a wrapping grid), clipped
     to the speed limit: a position servo, as PD targets are for robot joints. The other four
-    dims are deltas, as with ``delta`` (random set points would hold the shape still)."""
+    dims are deltas, as with ``delta`` (random set points would hold the shape still).
+    ``shape``: the velocities and the spin change as with ``delta``, the amplitude and the
+    widths are targets as with ``target``, so a wavelet's depth or height follows the state
+    without being integrated, and no action is lost against a limit."""
     wave_step: float = 0.1
     """Integration step of the wavelet parameters per physics tick [dimensionless], > 0."""
     velocity_gain: float = 1.0

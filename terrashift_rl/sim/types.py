@@ -17,6 +17,7 @@ SHAPE_ELLIPSOID = wp.constant(COLUMN_SHAPES.index("ellipsoid"))
 SHAPE_BOX = wp.constant(COLUMN_SHAPES.index("box"))
 ACTION_TARGET = wp.constant(ACTION_MODES.index("target"))
 ACTION_POSITION = wp.constant(ACTION_MODES.index("position"))
+ACTION_SHAPE = wp.constant(ACTION_MODES.index("shape"))
 
 OBJECT_FEATURES = 9
 """Per-object observation: position (3), goal position (3), velocity (3)."""

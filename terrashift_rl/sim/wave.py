@@ -5,7 +5,8 @@ omega). An action in [-1, 1]^6 changes the *rates* (v_x, v_y, omega) and the sha
 sigma_y) by a gain times the wave step each physics tick, or, with ``action_mode="target"``,
 sets the values they move towards at that same limited rate, or, with ``"position"``, sets
 where the wavelet goes (its velocity moves, at that rate, towards one that points there) and
-changes the rest as ``delta`` does; rates are clamped before they move the wavelet, so the
+changes the rest as ``delta`` does, or, with ``"shape"``, changes the rates as ``delta`` does
+and sets the shape as ``target`` does; rates are clamped before they move the wavelet, so the
 speed limits hold exactly. Heights are the clipped sum of all wavelets at integer cell
 positions, with offsets wrapped into [-G/2, G/2) when the grid is a torus.
 """
@@ -14,7 +15,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from terrashift_rl.sim.types import ACTION_POSITION, ACTION_TARGET, Model
+from terrashift_rl.sim.types import ACTION_POSITION, ACTION_SHAPE, ACTION_TARGET, Model
 
 wp.set_module_options({"enable_backward": False})  # nothing differentiates through it
 
@@ -79,12 +80,8 @@ def update_agents(
     d_sigma = a_sigma
     g = float(model.grid_size)
     v_gain = model.velocity_gain * step
-    if model.action_mode == ACTION_TARGET:
+    if model.action_mode == ACTION_TARGET or model.action_mode == ACTION_SHAPE:
         # the change towards each target, in units of a full delta action's change per tick
-        d_velocity = wp.vec2(
-            towards(a[0] * vmax, v0[0], v_gain), towards(a[1] * vmax, v0[1], v_gain)
-        )
-        d_omega = towards(a_omega * omax, w0, model.angular_velocity_gain * step)
         d_amplitude = towards(a_amplitude * amax, amp0, model.amplitude_gain * step)
         half_range = 0.5 * (model.sigma_max - model.sigma_min)
         s_gain = model.sigma_gain * step
@@ -92,6 +89,11 @@ def update_agents(
             towards(model.sigma_min + (a_sigma[0] + 1.0) * half_range, s0[0], s_gain),
             towards(model.sigma_min + (a_sigma[1] + 1.0) * half_range, s0[1], s_gain),
         )
+    if model.action_mode == ACTION_TARGET:
+        d_velocity = wp.vec2(
+            towards(a[0] * vmax, v0[0], v_gain), towards(a[1] * vmax, v0[1], v_gain)
+        )
+        d_omega = towards(a_omega * omax, w0, model.angular_velocity_gain * step)
     elif model.action_mode == ACTION_POSITION:
         # a servo: the velocity moves towards one that points to the target position (the short
         # way round a wrapping grid), at most a full delta action's change per tick

@@ -194,6 +194,25 @@ def test_heuristic_with_target_actions_sets_its_set_points():
     assert abs(at_target[VX]) < 1e-5 and at_target[AMP] == 1.0
 
 
+def test_heuristic_with_shape_actions_accelerates_as_with_deltas_and_sets_its_shape():
+    delta_cfg = one_object_config()
+    cfg = delta_cfg.replace(action_mode="shape")
+    sphere, goal = (7.0, 7.0), (12.0, 7.0)  # target cell x = 5
+    for wavelet in ((1.0, 7.0), (5.0, 7.0)):  # travelling, then on its target
+        scene = posed_scene([wavelet], [sphere], [goal], cfg)
+        scene[GROUP, "observation"][0, 0, 3] = 0.5  # a half-height bump
+        scene[GROUP, "observation"][0, 0, 8] = 0.5  # spinning
+        action = ScriptedHeuristicPolicy(cfg)(scene.clone())[GROUP, "action"][0, 0]
+        delta = ScriptedHeuristicPolicy(delta_cfg)(scene.clone())[GROUP, "action"][0, 0]
+        torch.testing.assert_close(action[[VX, VY, OMEGA]], delta[[VX, VY, OMEGA]])
+        width = cfg.sigma_min + (action[SX] + 1) * 0.5 * (cfg.sigma_max - cfg.sigma_min)
+        assert width == pytest.approx(1.0) and action[SY] == action[SX]
+    # the amplitude set points: flat while travelling, the full bump on its target
+    assert action[AMP] == 1.0
+    travelling = posed_scene([(1.0, 7.0)], [sphere], [goal], cfg)
+    assert ScriptedHeuristicPolicy(cfg)(travelling)[GROUP, "action"][0, 0, AMP] == 0.0
+
+
 def test_heuristic_with_position_actions_aims_where_the_servo_gives_its_velocity():
     cfg = one_object_config().replace(action_mode="position", position_gain=2.0)
     policy = ScriptedHeuristicPolicy(cfg)

@@ -186,6 +186,8 @@ def reference_tick(state: dict[str, np.ndarray], action: np.ndarray, cfg: TerraS
     h = cfg.wave_step
     if cfg.action_mode == "target":
         a = changes_towards_targets(state, a, cfg)
+    elif cfg.action_mode == "shape":
+        a = np.concatenate([a[..., 0:3], changes_towards_targets(state, a, cfg)[..., 3:]], -1)
     elif cfg.action_mode == "position":
         a = np.concatenate([changes_towards_position(state, a, cfg), a[..., 2:]], -1)
     g = cfg.grid_size
@@ -266,6 +268,7 @@ def circular_error(actual: np.ndarray, expected: np.ndarray, period: float) -> n
         (True, "target", -1.0),
         (True, "position", -1.0),
         (False, "position", -1.0),
+        (True, "shape", -1.0),
     ],
 )
 def test_parameter_dynamics_match_reference_over_several_decisions(
@@ -411,6 +414,32 @@ def test_position_actions_bring_the_wavelet_to_its_target_within_the_speed_limit
     assert circular_error(np.array(x), np.array(target), g) < 1e-3 and y == pytest.approx(6.0)
     assert speeds[-1] < 1e-3  # at rest on its target
     assert sim.view("agent_amplitude")[0, 0].item() == pytest.approx(cfg.max_amplitude)
+
+
+def test_shape_actions_change_the_rates_and_set_the_shape():
+    sim = make_sim(num_envs=1, num_agents=1, action_repeat=1, action_mode="shape")
+    cfg = sim.config
+    set_agents(sim, [[[5.0, 6.0]]], [[1.0]], [[0.0]], [[[1.0, 1.0]]])
+    # rates: full acceleration along +x, none along y, full spin-up; shape: a basin half the
+    # floor's depth, widths (sigma_min, sigma_max)
+    action = torch.tensor([[[1.0, 0.0, 1.0, -0.5, -1.0, 1.0]]])
+    for _ in range(60):  # long enough for the slowest target (the widths: 1.8 cells at 0.05)
+        sim.step(action)
+    assert sim.view("agent_velocity")[0, 0].tolist() == pytest.approx([cfg.max_velocity, 0.0])
+    assert sim.view("agent_angular_velocity")[0, 0].item() == pytest.approx(
+        cfg.max_angular_velocity
+    )
+    assert sim.view("agent_amplitude")[0, 0].item() == pytest.approx(-0.5 * cfg.max_amplitude)
+    assert sim.view("agent_sigma")[0, 0].tolist() == pytest.approx(
+        [cfg.sigma_min, cfg.sigma_max], abs=1e-6
+    )
+    # a zero action holds the rates and brings the shape to the middle of its ranges
+    for _ in range(60):
+        sim.step(torch.zeros_like(action))
+    assert sim.view("agent_velocity")[0, 0].tolist() == pytest.approx([cfg.max_velocity, 0.0])
+    assert sim.view("agent_amplitude")[0, 0].item() == pytest.approx(0.0, abs=1e-7)
+    middle = 0.5 * (cfg.sigma_min + cfg.sigma_max)
+    assert sim.view("agent_sigma")[0, 0].tolist() == pytest.approx([middle, middle], abs=1e-6)
 
 
 def test_actions_beyond_the_unit_box_act_as_their_clipped_values():
