@@ -72,8 +72,8 @@ class TerraShiftConfig:
     to the speed limit: a position servo, as PD targets are for robot joints. The other four
     dims are deltas, as with ``delta`` (random set points would hold the shape still).
     ``shape``: the velocities and the spin change as with ``delta``, the amplitude and the
-    widths are targets as with ``target``, so a wavelet's depth or height follows the state
-    without being integrated, and no action is lost against a limit."""
+    widths are targets as with ``target``, so a wavelet's depth or height is chosen afresh at
+    every decision rather than integrated from changes (the main job's mode)."""
     wave_step: float = 0.1
     """Integration step of the wavelet parameters per physics tick [dimensionless], > 0."""
     velocity_gain: float = 1.0

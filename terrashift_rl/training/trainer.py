@@ -66,10 +66,11 @@ class TrainConfig:
     """Hyper-parameters of :class:`OnPolicyTrainer` (a Hydra structured config).
 
     Start/end pairs are linear schedules over ``schedule_iterations`` updates. The defaults
-    (2,048 environments, 2 epochs of 8 mini-batches, learning rates 3e-4 / 6e-4, a constant
-    entropy coefficient of 0.001, schedules over 1,000 updates) suit thousands of environments
-    on one GPU; Table 1's (4 epochs of small mini-batches from 8 environments, rates 1e-5 / 2e-5
-    over 5,000-10,000 updates, entropy 0.005 -> 0.001) suit them poorly (docs/experiments.md).
+    (2,048 environments, 2 epochs of 8 mini-batches, learning rates 1e-3 / 6e-4, a constant
+    entropy coefficient of 0.002, schedules over 1,000 updates) suit thousands of environments
+    on one GPU; Table 1's (4 epochs of small mini-batches from 8 environments, rates 1e-4 / 2e-4
+    over 10,000 updates, entropy 0.005 -> 0.001) suit them poorly (docs/experiments.md,
+    docs/results.md).
     """
 
     algo: str = "mapoca"
@@ -88,8 +89,9 @@ class TrainConfig:
     """Discount."""
     lmbda: float = 0.92
     """GAE lambda."""
-    lr_trunk_policy: float = 3.0e-4
-    """AdamW learning rate of the trunk and the policy head at the start."""
+    lr_trunk_policy: float = 1.0e-3
+    """AdamW learning rate of the trunk and the policy head at the start (3e-4 barely moves
+    a Beta policy per update)."""
     lr_value_baseline: float = 6.0e-4
     """AdamW learning rate of the critics at the start (MA-POCA's value and baseline heads,
     MAPPO's value head, IPPO's per-agent value head)."""

@@ -94,8 +94,12 @@ def test_the_train_and_loss_groups_split_train_config_and_default_to_its_default
 
 def test_the_table1_options_give_the_papers_table_1():
     from terrashift_rl.modules import TerraShiftModelConfig
+    from terrashift_rl.sim import TerraShiftConfig
 
-    cfg = compose_config("mapoca_pretrain", "model=table1", "train=table1", "loss=table1")
+    paper_scene = ("env.respawn_fraction=1", "env.approach_scale=0", "env.action_mode=delta")
+    groups = ("model=table1", "train=table1", "loss=table1")
+    cfg = compose_config("mapoca_pretrain", *groups, *paper_scene)
+    assert TerraShiftConfig(**cfg.env) == TerraShiftConfig()  # the paper's scene and reward
     assert TerraShiftModelConfig(**cfg.model) == TerraShiftModelConfig()
     config = train_config_of(cfg)
     # 8,192 decisions per update in sequences of 32, mini-batches of 32 sequences, 4 epochs

@@ -87,7 +87,11 @@ def test_the_critic_loss_trains_the_shared_trunk_through_the_fresh_embedding(alg
 def test_critic_warmup_and_the_adaptive_learning_rate_work_with_torchrls_losses(algo):
     # a KL target far above any update's KL: every policy mini-batch raises the rate
     trainer = make_trainer(
-        algo, critic_warmup_iterations=1, lr_schedule="adaptive", desired_kl=10.0
+        algo,
+        critic_warmup_iterations=1,
+        lr_schedule="adaptive",
+        desired_kl=10.0,
+        lr_trunk_policy=3.0e-4,
     )
     before = weights(trainer)
     metrics = trainer.train_iteration()

@@ -375,21 +375,24 @@ def test_adaptive_learning_rate_moves_against_the_kl(kl_over_target, factor):
 
 def test_adaptive_learning_rate_stays_within_its_bounds_and_survives_a_resume():
     # a KL target far above any update's KL: every mini-batch raises the rate, up to lr_max
-    trainer = make_trainer(lr_schedule="adaptive", desired_kl=10.0, lr_max=1.0e-3, epochs=2)
+    settings = dict(
+        lr_schedule="adaptive", desired_kl=10.0, lr_trunk_policy=3.0e-4, lr_max=1.0e-3, epochs=2
+    )
+    trainer = make_trainer(**settings)
     metrics = trainer.train_iteration()
     assert metrics["kl_approx"] < 5.0
     assert metrics["lr_trunk_policy"] == pytest.approx(3.0e-4 * 1.5**2)  # two mini-batches
     metrics = trainer.train_iteration()
     assert metrics["lr_trunk_policy"] == pytest.approx(1.0e-3)  # clamped
     assert trainer.optimizer.param_groups[1]["lr"] == pytest.approx(6.0e-4 * (1 - 0.9 / 1000))
-    resumed = make_trainer(lr_schedule="adaptive", desired_kl=10.0, lr_max=1.0e-3, epochs=2)
+    resumed = make_trainer(**settings)
     resumed.load_state_dict(trainer.state_dict())
     resumed._apply_schedules()  # an adaptive rate is not reset by the schedules
     assert resumed.optimizer.param_groups[0]["lr"] == pytest.approx(1.0e-3)
 
 
 def test_linear_schedule_ignores_the_kl():
-    trainer = make_trainer(lr_end_factor=0.5, schedule_iterations=2)
+    trainer = make_trainer(lr_trunk_policy=3.0e-4, lr_end_factor=0.5, schedule_iterations=2)
     rates = [trainer.train_iteration()["lr_trunk_policy"] for _ in range(3)]
     assert rates == pytest.approx([3.0e-4, 2.25e-4, 1.5e-4])
 
