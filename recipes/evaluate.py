@@ -37,6 +37,7 @@ from terrashift_rl.training.run import (
     POSITIVE,
     TEXT,
     WEIGHTS_KEYS,
+    check_action_mode,
     check_settings,
     integer,
     one_of,
@@ -78,6 +79,8 @@ def main(cfg: DictConfig) -> None:
         scene = TerraShiftConfig(**checkpoint["env_config"])
     else:
         scene = structured(TerraShiftConfig, cfg.env, "env")
+        if checkpoint is not None:
+            check_action_mode(checkpoint, scene, "checkpoint")
     scene = evaluation_scene(scene, respawn=cfg.respawn)
     results: dict = {"scene": dataclasses.asdict(scene), "episodes": cfg.episodes}
 

@@ -390,6 +390,19 @@ def network_settings(model_config: dict) -> dict:
     return {k: v for k, v in model_config.items() if k not in INITIALISATION_SETTINGS}
 
 
+def check_action_mode(checkpoint: dict, scene: TerraShiftConfig, key: str) -> None:
+    """Raises ``ValueError`` when the policy of ``checkpoint`` (named by the setting ``key``)
+    was trained with other actions than ``scene``'s, where its actions would mean something
+    else; a checkpoint older than ``action_mode`` had the paper's delta actions."""
+    trained = checkpoint["env_config"].get("action_mode", "delta")
+    if trained != scene.action_mode:
+        raise ValueError(
+            f"{key} was trained with env.action_mode={trained} and this scene has "
+            f"{scene.action_mode}, where its actions mean something else; set "
+            f"env.action_mode={trained}"
+        )
+
+
 def hydra_override(key: str, value: Any) -> str:
     """``key=value`` as Hydra reads it back as ``value``.
 
@@ -634,6 +647,7 @@ def run_training(cfg: DictConfig, *, run_dir: Path) -> Path:
                 "model settings it was trained with (the recipes do when the command line sets "
                 "none)"
             )
+        check_action_mode(pretrained, env_config, "run.pretrained")
     env = make_training_env(
         env_config, networks, num_envs=train_config.num_envs, device=device, seed=seed
     )

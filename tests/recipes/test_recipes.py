@@ -331,6 +331,12 @@ def test_without_cuda_finetuning_builds_the_network_of_its_checkpoint(tmp_path):
     given = run(*finetune, "model=small", "hydra.run.dir=d", cwd=tmp_path, config_name=None)
     assert given.returncode != 0
     assert "holds a network of another shape" in given.stderr
+    # a policy of shape actions (the recipe's) is refused on a scene of delta actions
+    delta = run(
+        *finetune, "env.action_mode=delta", "hydra.run.dir=f", cwd=tmp_path, config_name=None
+    )
+    assert delta.returncode != 0
+    assert "run.pretrained was trained with env.action_mode=shape" in delta.stderr
     # with the configured sizes (as on a GPU), the checkpoint's model replaces the configured one
     configured = run(
         *finetune,
@@ -466,6 +472,18 @@ def test_best_checkpoint_and_snapshots_hold_the_weights_they_name(tmp_path):
     assert report["scene"]["respawn"]
     for name in ("deterministic", "stochastic"):  # every episode runs to the step limit
         assert report[name]["mean_episode_length"] == best["env_config"]["max_episode_steps"]
+    # on a scene of the command line's, the policy's actions must mean what they meant
+    other = ("scene_from_checkpoint=false", "env=smoke", "env.action_mode=delta")
+    refused = run(
+        "evaluate.py",
+        "checkpoint=a/checkpoints/best.pt",
+        *other,
+        "hydra.run.dir=f",
+        cwd=tmp_path,
+        config_name=None,
+    )
+    assert refused.returncode != 0
+    assert "checkpoint was trained with env.action_mode=shape" in refused.stderr
     # the same weights, from the last checkpoint and from its snapshot: with the same seed the
     # sampled actions, and so every score, are the same
     sampled = []

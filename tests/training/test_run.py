@@ -7,10 +7,12 @@ import torch
 from omegaconf import OmegaConf
 from tqdm import tqdm
 
+from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training import load_checkpoint, run
 from terrashift_rl.training.run import (
     OVERRIDES,
     StopRequest,
+    check_action_mode,
     check_settings,
     cpu_overrides,
     resolve_device,
@@ -64,6 +66,17 @@ def test_auto_resolves_to_the_cpu_without_cuda(monkeypatch):
     assert resolve_device("auto", "run.device") == torch.device("cpu")
     with pytest.raises(ValueError, match="^device must be auto, cpu, cuda or cuda:<index>, got 7"):
         resolve_device(7, "device")
+
+
+def test_a_checkpoint_is_refused_on_a_scene_with_other_actions():
+    shape = {"env_config": {"action_mode": "shape"}}
+    check_action_mode(shape, TerraShiftConfig(action_mode="shape"), "run.pretrained")
+    with pytest.raises(ValueError, match="run.pretrained was trained with env.action_mode=shape"):
+        check_action_mode(shape, TerraShiftConfig(), "run.pretrained")
+    # a checkpoint older than the setting had the paper's delta actions
+    check_action_mode({"env_config": {}}, TerraShiftConfig(), "checkpoint")
+    with pytest.raises(ValueError, match="set env.action_mode=delta"):
+        check_action_mode({"env_config": {}}, TerraShiftConfig(action_mode="shape"), "checkpoint")
 
 
 def test_a_second_signal_interrupts_at_once():
