@@ -60,8 +60,7 @@ class TerraShiftConfig:
     """Wave agents K (one Gaussian wavelet each) [count], >= 1."""
     action_mode: str = "delta"
     """What an action in [-1, 1] sets, one of ``delta``, ``target``, ``position`` or ``shape``.
-    ``delta``
-    (the paper's): the change of each wavelet quantity per physics tick,
+    ``delta`` (the paper's): the change of each wavelet quantity per physics tick,
     ``gain * wave_step * action``. ``target``: the value each quantity moves towards, mapped
     from [-1, 1] onto its range (velocities, spin and amplitude onto +-their limits, widths onto
     [sigma_min, sigma_max]); each tick it moves by at most a full ``delta`` action's change, so
