@@ -7,7 +7,8 @@
 The networks are size-agnostic: the same weights run 15x15 with 8 agents and 30x30 with 16. The
 model settings are the checkpoint's (unless the command line sets them), also on a CPU, where
 they replace run.cpu_defaults' model=small.
-Config: recipes/configs/mapoca_finetune.yaml (the pretraining config with env=finetune).
+Config: recipes/configs/mapoca_finetune.yaml (the pretraining config with env=finetune, the
+critics warmed up for 8 iterations first and a KL-adaptive learning rate).
 Training itself is the pretraining recipe's run (:func:`terrashift_rl.training.run.run_training`),
 started from the pretrained weights with a fresh optimiser and fresh schedules.
 """

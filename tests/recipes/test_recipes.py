@@ -116,6 +116,24 @@ def test_the_table1_options_give_the_papers_table_1():
     assert (config.max_grad_norm_start, config.max_grad_norm_end) == (5.0, 0.5)
 
 
+def test_the_finetune_recipe_differs_from_pretraining_in_its_scene_warm_up_and_kl_bound():
+    pretrain, finetune = compose_config("mapoca_pretrain"), compose_config("mapoca_finetune")
+    assert (finetune.env.grid_size, finetune.env.num_agents) == (30, 16)
+    assert finetune.env.action_mode == pretrain.env.action_mode  # the checkpoint's actions
+    config = train_config_of(finetune)
+    config.validate()
+    # the critics fit the new scene for 0.5 M env-steps before the policy moves, then the
+    # policy's rate follows a KL target below the adaptive schedule's default
+    assert config.critic_warmup_iterations * config.num_envs * config.steps_per_iteration >= 5e5
+    assert config.lr_schedule == "adaptive" and config.desired_kl < TrainConfig().desired_kl
+    changed = {"critic_warmup_iterations", "lr_schedule", "desired_kl"}
+    expected = dataclasses.replace(
+        train_config_of(pretrain), **{name: getattr(config, name) for name in changed}
+    )
+    assert config == expected
+    assert finetune.model == pretrain.model and finetune.loss == pretrain.loss
+
+
 @pytest.mark.parametrize(
     "path",
     sorted(
