@@ -21,6 +21,27 @@ ACTION_MODES = ("delta", "target", "position", "shape")
 the wavelet's target position (and the change of the rest), or the change of the rates and the
 target of the shape."""
 
+REWARD_TERMS = {
+    "goal_reward": "task",
+    "out_of_bounds_penalty": "task",
+    "distance_scale": "task",
+    "slow_penalty": "task",
+    "time_penalty": "task",
+    "potential_scale": "shaping",
+    "alignment_scale": "shaping",
+    "approach_scale": "shaping",
+    "sphere_approach_scale": "shaping",
+}
+"""Every term of the reward, by the config field that scales it, and its role. ``task``: the
+benchmark's reward (the paper's Table 1: goal, out of bounds, distance gained, slow spheres,
+time), which every reported reward per decision holds. ``shaping``: a training aid, off at 0,
+that evaluation switches off (:meth:`TerraShiftConfig.without_shaping`) so that the reward per
+decision compares across recipes and with the baselines. A term's field ends in ``_scale``,
+``_reward`` or ``_penalty``; the fields that only tune a term (``distance_clip``,
+``potential_gamma``, ``slow_speed``, ``approach_radius``, ``reward_normalizer``) are not terms.
+A new term goes here, or the tests that compare this table with the config and the reward
+kernel fail."""
+
 
 @dataclass
 class TerraShiftConfig:
@@ -252,6 +273,20 @@ class TerraShiftConfig:
         if unknown:
             raise ValueError(f"unknown TerraShiftConfig field(s) {unknown}")
         return dataclasses.replace(self, **overrides)
+
+    def without_shaping(self) -> TerraShiftConfig:
+        """Returns a copy with every shaping term of the reward (:data:`REWARD_TERMS`) at 0
+        and every task term as it was.
+
+        Example:
+            >>> scene = TerraShiftConfig(approach_scale=0.3, potential_scale=0.5)
+            >>> plain = scene.without_shaping()
+            >>> plain.approach_scale, plain.potential_scale, plain.distance_scale
+            (0.0, 0.0, 100.0)
+        """
+        return self.replace(
+            **{name: 0.0 for name, role in REWARD_TERMS.items() if role == "shaping"}
+        )
 
     # --- validation -----------------------------------------------------------------------
     def validate(self) -> None:

@@ -62,15 +62,15 @@ def _scene_config(env: EnvBase) -> TerraShiftConfig:
 
 def evaluation_scene(config: TerraShiftConfig, *, respawn: bool = False) -> TerraShiftConfig:
     """The scene as an evaluation plays it: ``respawn`` as given (False: evaluation mode), and
-    without the approach shaping (both terms), a training aid, so that the reward per decision
-    compares across recipes and with the baselines.
+    without the reward's shaping terms (:meth:`~TerraShiftConfig.without_shaping`), training
+    aids, so that the reward per decision compares across recipes and with the baselines.
 
     Example:
-        >>> scene = evaluation_scene(TerraShiftConfig(approach_scale=0.3))
-        >>> scene.respawn, scene.approach_scale
-        (False, 0.0)
+        >>> scene = evaluation_scene(TerraShiftConfig(approach_scale=0.3, alignment_scale=0.2))
+        >>> scene.respawn, scene.approach_scale, scene.alignment_scale
+        (False, 0.0, 0.0)
     """
-    return config.replace(respawn=respawn, approach_scale=0.0, sphere_approach_scale=0.0)
+    return config.without_shaping().replace(respawn=respawn)
 
 
 def evaluate(

@@ -9,13 +9,14 @@ from torchrl.envs import InitTracker, StepCounter, TransformedEnv
 from terrashift_rl.envs import GROUP, TerraShiftEnv
 from terrashift_rl.envs.baselines import RandomPolicy, ScriptedHeuristicPolicy, ZeroPolicy
 from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
-from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.sim import REWARD_TERMS, TerraShiftConfig
 from terrashift_rl.training import make_training_env
 from terrashift_rl.training.evaluation import (
     HEADLINE,
     evaluate,
     evaluate_baselines,
     evaluate_periodically,
+    evaluation_scene,
 )
 
 STEPS = 96
@@ -116,9 +117,22 @@ def test_training_mode_runs_every_episode_to_the_step_limit():
     assert all(scores["mean_episode_length"] == steps for scores in baselines.values())
 
 
-@pytest.mark.parametrize("term", ["approach_scale", "sphere_approach_scale"])
-def test_evaluation_scores_the_reward_without_the_approach_shaping(term):
-    # the heuristic drives its wavelets to the spheres, which either approach term would pay for
+SHAPING = [name for name, role in REWARD_TERMS.items() if role == "shaping"]
+
+
+def test_evaluation_scene_switches_off_every_shaping_term_and_keeps_the_task_terms():
+    values = {name: 0.25 * (i + 1) for i, name in enumerate(REWARD_TERMS)}
+    scene = evaluation_scene(TerraShiftConfig(**values), respawn=True)
+    assert {name: getattr(scene, name) for name in REWARD_TERMS} == {
+        name: 0.0 if name in SHAPING else value for name, value in values.items()
+    }
+    assert scene.respawn and not evaluation_scene(scene).respawn
+
+
+@pytest.mark.parametrize("term", SHAPING)
+def test_evaluation_scores_the_reward_without_the_shaping_term(term):
+    # the heuristic drives its wavelets to the spheres and the spheres to their goals, which
+    # every shaping term pays for
     n, seed, steps = 4, 3, 48
     config = CFG.replace(max_episode_steps=steps)
     shaped = config.replace(**{term: 1.0})
