@@ -33,7 +33,7 @@ REWARD_TERMS = {
     "sphere_approach_scale": "shaping",
 }
 """Every term of the reward, by the config field that scales it, and its role. ``task``: the
-benchmark's reward (the paper's Table 1: goal, out of bounds, distance gained, slow spheres,
+benchmark's reward (the paper's reported run: goal, out of bounds, distance gained, slow spheres,
 time), which every reported reward per decision holds. ``shaping``: a training aid, off at 0,
 that evaluation switches off (:meth:`TerraShiftConfig.without_shaping`) so that the reward per
 decision compares across recipes and with the baselines. A term's field ends in ``_scale``,
