@@ -1,15 +1,56 @@
-"""What the benchmark scripts share: the device's name, how results are written and read."""
+"""What the benchmark scripts share: their command line's basics, the header of a results file,
+how a table is printed, and how results are written and read."""
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import os
 import platform
+import shlex
+import sys
+from collections.abc import Iterable
+from datetime import date
 from pathlib import Path
 
 import torch
 from omegaconf import OmegaConf
+
+
+def benchmark_parser(doc: str, *, device: bool = False) -> argparse.ArgumentParser:
+    """The parser a script starts from: its docstring's first line as the description and the
+    rest, the usage examples, after the options in ``--help``; with ``device``, a ``--device``
+    option (CUDA when present, else the CPU)."""
+    summary, _, usage = doc.partition("\n")
+    parser = argparse.ArgumentParser(
+        description=summary, epilog=usage, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    if device:
+        parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    return parser
+
+
+def run_header(device: torch.device) -> dict:
+    """What heads every results file: the date, the device's name, torch's version and the
+    command that wrote it."""
+    return {
+        "date": date.today().isoformat(),
+        "device": device_name(device),
+        "torch": torch.__version__,
+        "command": shlex.join(["python", *sys.argv]),
+    }
+
+
+def table_row(cells: Iterable[object]) -> str:
+    """One row of a Markdown table, the form in which every script prints its results."""
+    return "| " + " | ".join(str(cell) for cell in cells) + " |"
+
+
+def table_header(names: Iterable[str]) -> str:
+    """A Markdown table's header row and the rule under it."""
+    names = list(names)
+    return table_row(names) + "\n" + table_row("---" for _ in names)
 
 
 def device_name(device: torch.device) -> str:
