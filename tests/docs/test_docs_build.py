@@ -34,4 +34,4 @@ def test_docs_build_without_warnings(tmp_path: Path) -> None:
     assert len(tutorials) == len(list((DOCS / "tutorials").glob("plot_*.py")))
     reference = (html / "environment.html").read_text()
     assert "contact_stiffness" in reference and "N/m" in reference
-    assert (html / "_images" / "pretrain_h100_teacher_held.png").is_file()
+    assert (html / "_images" / "shape_actions_h100.png").is_file()
