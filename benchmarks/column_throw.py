@@ -14,12 +14,10 @@ Prints a table and writes JSON.
 
 from __future__ import annotations
 
-import argparse
-from datetime import date
 from pathlib import Path
 
 import torch
-from common import write_results
+from common import benchmark_parser, run_header, table_header, table_row, write_results
 
 from terrashift_rl.sim import ScriptedScene, TerraShiftConfig
 
@@ -72,7 +70,7 @@ def throw_heights(
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = benchmark_parser(__doc__)
     parser.add_argument(
         "--speeds", type=float, nargs="+", default=[0.6, 1.2, 1.8, 2.4, 3.6, 4.8, 6.0, 7.2]
     )
@@ -91,7 +89,9 @@ def main() -> None:
         f"restitution {args.restitution}; peak height [m] at {substeps} substeps and "
         f"{args.refinement * substeps}, error of the first"
     )
-    print(f"{'speed m/s':>9} | " + " | ".join(f"{h:>26}" for h in HOLLOWS))
+    print(
+        table_header(["speed m/s", *(f"{hollow}: height, reference, error" for hollow in HOLLOWS)])
+    )
     for i, speed in enumerate(args.speeds):
         row = {"column_speed": speed}
         cells = []
@@ -102,13 +102,13 @@ def main() -> None:
                 "reference": fine[hollow][i],
                 "error": error,
             }
-            cells.append(f"{coarse[hollow][i]:.4f} {fine[hollow][i]:.4f} {error:+7.1%}")
+            cells.append(f"{coarse[hollow][i]:.4f}, {fine[hollow][i]:.4f}, {error:+.1%}")
         rows.append(row)
-        print(f"{speed:9.1f} | " + " | ".join(f"{c:>26}" for c in cells))
+        print(table_row([f"{speed:.1f}", *cells]))
     write_results(
         args.out,
         {
-            "date": date.today().isoformat(),
+            **run_header(torch.device("cpu")),
             "restitution": args.restitution,
             "substeps": substeps,
             "reference_substeps": args.refinement * substeps,

@@ -16,12 +16,11 @@ evaluations) point by point. Values keep 4 significant digits.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 from pathlib import Path
 
-from common import read_evaluations, read_series, run_label
+from common import benchmark_parser, read_evaluations, read_series, run_label
 from omegaconf import OmegaConf
 
 
@@ -85,7 +84,7 @@ def write_summary(summary: dict, out_dir: Path) -> Path:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = benchmark_parser(__doc__)
     parser.add_argument("runs", nargs="+", type=Path, help="CSVLogger scalars folders")
     parser.add_argument("--name", help="the summary's name (one run only); default: its label")
     parser.add_argument("--device")

@@ -31,11 +31,10 @@ import subprocess
 import sys
 import tempfile
 import time
-from datetime import date
 from pathlib import Path
 
 import torch
-from common import device_name, read_series, write_results
+from common import benchmark_parser, device_name, read_series, run_header, write_results
 from hydra import compose, initialize_config_dir
 
 from terrashift_rl.training.run import register_config_schemas
@@ -116,7 +115,7 @@ def format_row(row: dict) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = benchmark_parser(__doc__)
     parser.add_argument("--processes", type=int, nargs="+", default=[1, 2, 4, 8])
     parser.add_argument("--device", choices=["cuda", "cpu"], default=None)
     parser.add_argument("--smoke", action="store_true", help="the smoke config, on the CPU")
@@ -155,10 +154,8 @@ def main() -> None:
         " launch s"
     )
     payload = {
-        "date": date.today().isoformat(),
-        "device": name,
+        **run_header(device),
         "device_count": torch.cuda.device_count() if device.type == "cuda" else os.cpu_count(),
-        "torch": torch.__version__,
         "config_name": args.config_name,
         "overrides": args.overrides,
         "warmup_iterations": args.warmup,

@@ -16,15 +16,13 @@ substeps: where a step's time goes.
 
 from __future__ import annotations
 
-import argparse
 import subprocess
 import time
-from datetime import date
 from pathlib import Path
 
 import torch
 import warp as wp
-from common import device_name, write_results
+from common import benchmark_parser, run_header, table_header, table_row, write_results
 
 from terrashift_rl.envs import GROUP, TerraShiftEnv
 from terrashift_rl.sim import Simulator, TerraShiftConfig
@@ -125,8 +123,7 @@ def _commit() -> str | None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser = benchmark_parser(__doc__, device=True)
     parser.add_argument("--num-envs", type=int, nargs="+", default=DEFAULT_SIZES)
     parser.add_argument("--seconds", type=float, default=2.0, help="timing window per size")
     parser.add_argument("--column-shape", default="ellipsoid")
@@ -145,13 +142,10 @@ def main() -> None:
     if profile_sizes and device.type != "cuda":
         parser.error("--profile times GPU kernels: it needs --device cuda")
     config = TerraShiftConfig.preset("pretrain", column_shape=args.column_shape)
-    name = device_name(device)
     out = args.out or Path(__file__).parent / "results" / f"env_throughput_{device.type}.json"
     payload = {
         "benchmark": "env_throughput",
-        "date": date.today().isoformat(),
-        "device": name,
-        "torch": torch.__version__,
+        **run_header(device),
         "warp": wp.__version__,
         "commit": _commit(),
         "config": {
@@ -163,19 +157,28 @@ def main() -> None:
         "rows": [],
         "profiles": [],
     }
-    print(f"TerraShift env throughput, pretrain scene ({config.column_shape}), {name}")
     print(
-        f"{'num_envs':>9} | {'simulator':>11} | {'substeps':>11} | {'fused':>11} | "
-        f"{'per substep':>11} | {'TorchRL env':>11}   (env-steps/s)"
+        f"TerraShift env throughput (env-steps/s), pretrain scene ({config.column_shape}), "
+        f"{payload['device']}"
+    )
+    print(
+        table_header(["num_envs", "simulator", "substeps", "fused", "per substep", "TorchRL env"])
     )
     for n in args.num_envs:
         row = measure(config, n, device, args.seconds)
         payload["rows"].append(row)
         write_results(out, payload)
         print(
-            f"{n:>9} | {row['sim_steps_per_s']:>11,.0f} | {LAUNCHES[row['fuse_substeps']]:>11} | "
-            f"{row['sim_steps_per_s_fused']:>11,.0f} | {row['sim_steps_per_s_per_substep']:>11,.0f}"
-            f" | {row['env_steps_per_s']:>11,.0f}"
+            table_row(
+                [
+                    f"{n:,}",
+                    f"{row['sim_steps_per_s']:,.0f}",
+                    LAUNCHES[row["fuse_substeps"]],
+                    f"{row['sim_steps_per_s_fused']:,.0f}",
+                    f"{row['sim_steps_per_s_per_substep']:,.0f}",
+                    f"{row['env_steps_per_s']:,.0f}",
+                ]
+            )
         )
     for n in profile_sizes:
         for fused in (True, False):
@@ -186,12 +189,11 @@ def main() -> None:
             write_results(out, payload)
             total = sum(entry["ms"] for entry in kernels.values())
             print(f"\nkernels per step at {n} environments, substeps {LAUNCHES[fused]}:")
+            print(table_header(["kernel", "ms / step", "share", "launches"]))
             for kernel, entry in kernels.items():
-                print(
-                    f"  {kernel:<24} {entry['ms']:8.3f} ms {100 * entry['ms'] / total:5.1f}%"
-                    f"  {entry['launches']:3d} launches"
-                )
-            print(f"  {'total':<24} {total:8.3f} ms")
+                share = f"{100 * entry['ms'] / total:.1f}%"
+                print(table_row([kernel, f"{entry['ms']:.3f}", share, entry["launches"]]))
+            print(table_row(["total", f"{total:.3f}", "", ""]))
     print(f"wrote {out}")
 
 

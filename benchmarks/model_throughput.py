@@ -20,11 +20,10 @@ import math
 import statistics
 import time
 from dataclasses import asdict
-from datetime import date
 from pathlib import Path
 
 import torch
-from common import device_name, write_results
+from common import benchmark_parser, device_name, run_header, write_results
 from tensordict import TensorDict
 from tensordict.nn import InteractionType, set_interaction_type
 from torchrl.modules import set_recurrent_mode
@@ -210,8 +209,7 @@ def format_row(row: dict) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser = benchmark_parser(__doc__, device=True)
     parser.add_argument("--batches", type=int, nargs="+", default=DEFAULT_BATCHES)
     parser.add_argument(
         "--precisions", nargs="+", choices=list(PRECISIONS), default=list(PRECISIONS)
@@ -251,9 +249,7 @@ def main() -> None:
     rows: list[dict] = []
     payload = {
         "benchmark": "model_throughput",
-        "date": date.today().isoformat(),
-        "device": name,
-        "torch": torch.__version__,
+        **run_header(device),
         "task": {
             "agents": args.agents,
             "objects": args.objects,

@@ -6,16 +6,16 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
+from common import benchmark_parser
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = benchmark_parser(__doc__)
     parser.add_argument("results", nargs="+", type=Path, help="env_throughput JSON files")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()

@@ -49,7 +49,8 @@ def one_palette(frames: np.ndarray, colors: int) -> np.ndarray:
     return np.stack(
         [
             np.asarray(
-                Image.fromarray(frame).quantize(palette=palette, dither=Image.Dither.NONE)
+                Image.fromarray(frame)
+                .quantize(palette=palette, dither=Image.Dither.NONE)
                 .convert("RGB")
             )
             for frame in frames

@@ -20,10 +20,9 @@ when its parts' summaries are joined with ``+``: ``<name>_seed0.json+<name>_seed
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
-from common import joined_series, run_label, run_parts
+from common import benchmark_parser, joined_series, run_label, run_parts
 from matplotlib import colormaps
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
@@ -51,7 +50,7 @@ DEFAULT_METRICS = ("reward_per_decision", "success_rate", "env_steps_per_s")
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = benchmark_parser(__doc__)
     parser.add_argument(
         "runs", nargs="+", help="run summaries or scalars folders; a run's parts joined by +"
     )

@@ -21,12 +21,18 @@ logged up to N (none for a finetune's zero-shot score at 0).
 
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
 from pathlib import Path
 
-from common import joined_series, read_evaluations, run_parts
+from common import (
+    benchmark_parser,
+    joined_series,
+    read_evaluations,
+    run_parts,
+    table_header,
+    table_row,
+)
 
 METRICS = (
     ("goal_fraction", "{:.3f}"),
@@ -93,7 +99,7 @@ def row(label: str, runs: list[str | Path], at: int | None = None) -> list[str]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = benchmark_parser(__doc__)
     parser.add_argument(
         "recipes", nargs="+", help="label=summary,summary,... (a run's parts joined by +)"
     )
@@ -104,19 +110,18 @@ def main() -> None:
     args = parser.parse_args()
     header = ["recipe", "seeds", "env-steps", *(name for name, _ in METRICS)]
     header.append("training reward / decision, last 8")
-    print("| " + " | ".join(header) + " |")
-    print("|" + "---|" * len(header))
+    print(table_header(header))
     for recipe in args.recipes:
         label, _, paths = recipe.rpartition("=")  # labels may hold overrides
         runs = paths.split(",")
-        print("| " + " | ".join(row(label, runs, args.env_steps)) + " |")
+        print(table_row(row(label, runs, args.env_steps)))
     if args.baselines:
         saved = json.loads(args.baselines.read_text())  # evaluate_baselines' or evaluate.py's
         results = saved["results"] if "results" in saved else saved["baselines"]
         for name, metrics in results.items():
             cells = [f"{name} (baseline)", "", ""]
             cells += [form.format(metrics[metric]) for metric, form in METRICS] + [""]
-            print("| " + " | ".join(cells) + " |")
+            print(table_row(cells))
 
 
 if __name__ == "__main__":

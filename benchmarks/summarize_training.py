@@ -21,12 +21,19 @@ count are read at the bins' resolution there.
 
 from __future__ import annotations
 
-import argparse
 import math
 import statistics
 from pathlib import Path
 
-from common import read_evaluations, read_series, read_summary, run_label
+from common import (
+    benchmark_parser,
+    read_evaluations,
+    read_series,
+    read_summary,
+    run_label,
+    table_header,
+    table_row,
+)
 
 EVALUATIONS = ("evaluation", "training_mode_evaluation")
 
@@ -95,7 +102,7 @@ def row(folder: Path, last: int) -> list[str]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = benchmark_parser(__doc__)
     parser.add_argument("runs", nargs="+", type=Path, help="run summaries or scalars folders")
     parser.add_argument("--last", type=int, default=8, help="iterations averaged at the end")
     args = parser.parse_args()
@@ -114,10 +121,9 @@ def main() -> None:
         "training mode, sampled: same",
         "training mode, Beta mean: same",
     ]
-    print("| " + " | ".join(header) + " |")
-    print("|" + "---|" * len(header))
+    print(table_header(header))
     for folder in args.runs:
-        print("| " + " | ".join(row(folder.resolve(), args.last)) + " |")
+        print(table_row(row(folder.resolve(), args.last)))
 
 
 if __name__ == "__main__":

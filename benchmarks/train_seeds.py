@@ -32,7 +32,7 @@ from datetime import date
 from pathlib import Path
 
 import torch
-from common import device_name
+from common import benchmark_parser, device_name
 from compact_logs import summarize, write_summary
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -67,7 +67,7 @@ def command(args: argparse.Namespace, seed: int, run_dir: Path, resume: Path | N
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = benchmark_parser(__doc__)
     parser.add_argument("--name", required=True, help="names the runs and their summaries")
     parser.add_argument("--seeds", type=int, nargs="+", required=True)
     parser.add_argument("--gpus", type=int, default=torch.cuda.device_count())

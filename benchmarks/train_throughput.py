@@ -26,11 +26,10 @@ import ast
 import dataclasses
 import statistics
 import time
-from datetime import date
 from pathlib import Path
 
 import torch
-from common import device_name, write_results
+from common import benchmark_parser, device_name, run_header, write_results
 from torch.autograd import DeviceType
 
 from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
@@ -185,8 +184,7 @@ def format_row(row: dict) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser = benchmark_parser(__doc__, device=True)
     parser.add_argument(
         "--settings", type=parse_setting, nargs="+", default=[*map(parse_setting, DEFAULT_SETTINGS)]
     )
@@ -232,9 +230,7 @@ def main() -> None:
         " epochs s | warmup s"
     )
     payload = {
-        "date": date.today().isoformat(),
-        "device": name,
-        "torch": torch.__version__,
+        **run_header(device),
         "preset": args.preset,
         "model": args.model,
         "deterministic": args.deterministic,

@@ -1,11 +1,19 @@
-"""common.py: a run continued in parts is read as one series."""
+"""common.py: a run continued in parts is read as one series; the shared command line, header
+and table."""
 
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
 
-from common import joined_series  # noqa: E402
+import torch  # noqa: E402
+from common import (  # noqa: E402
+    benchmark_parser,
+    joined_series,
+    run_header,
+    table_header,
+    table_row,
+)
 
 
 def test_a_runs_parts_joined_by_plus_make_one_series_in_order(tmp_path):
@@ -16,3 +24,23 @@ def test_a_runs_parts_joined_by_plus_make_one_series_in_order(tmp_path):
     steps, values = joined_series(f"{first}+{second}", "reward_per_decision")
     assert steps == [64, 128, 192] and values == [0.1, 0.2, 0.3]
     assert joined_series(str(second), "reward_per_decision") == ([192], [0.3])
+
+
+def test_a_benchmark_prints_a_markdown_table():
+    assert table_header(["envs", "env-steps/s"]) == "| envs | env-steps/s |\n| --- | --- |"
+    assert table_row([1024, "3,287,396"]) == "| 1024 | 3,287,396 |"
+
+
+def test_a_results_header_names_the_date_device_and_command(monkeypatch):
+    monkeypatch.setattr("sys.argv", ["benchmarks/env_throughput.py", "--num-envs", "4"])
+    header = run_header(torch.device("cpu"))
+    assert header["command"] == "python benchmarks/env_throughput.py --num-envs 4"
+    assert header["device"] and header["torch"] == torch.__version__
+    assert len(header["date"]) == 10 and header["date"][4] == "-"
+
+
+def test_the_shared_parser_describes_the_script_and_offers_a_device():
+    parser = benchmark_parser("Times a thing.\n\n    python benchmarks/x.py --fast\n", device=True)
+    assert parser.description == "Times a thing."
+    assert "python benchmarks/x.py --fast" in parser.format_help()
+    assert parser.parse_args(["--device", "cpu"]).device == "cpu"
