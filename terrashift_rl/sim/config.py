@@ -76,9 +76,15 @@ class TerraShiftConfig:
     wrap_edges: bool = True
     """Wrap wavelets around the grid edges (a torus); False clamps positions at the edges."""
 
-    # --- wave agents ----------------------------------------------------------------------
+    # --- agents and their actuator family ---------------------------------------------------
+    actuator: str = "wavelets"
+    """Actuator family, a name in ``terrashift_rl.sim.ACTUATORS``: ``wavelets`` (the paper's:
+    each agent a Gaussian bump or basin of the column heights), ``surface_flow`` (each agent a
+    Gaussian patch of in-plane surface velocity, a conveyor or ciliary surface) or ``rotors``
+    (each agent a spinning Gaussian patch of surface, a rotor tile). Every family's agent is a
+    mobile patch with the same action and observation layout (docs/actuators.md)."""
     num_agents: int = 8
-    """Wave agents K (one Gaussian wavelet each) [count], >= 1."""
+    """Agents K (one patch each: a Gaussian wavelet with the default actuator) [count], >= 1."""
     action_mode: str = "delta"
     """What an action in [-1, 1] sets, one of ``delta``, ``target``, ``position`` or ``shape``.
     ``delta`` (the paper's): the change of each wavelet quantity per physics tick,
@@ -122,6 +128,17 @@ class TerraShiftConfig:
     """Smallest wavelet width [cells], > 0."""
     sigma_max: float = 2.0
     """Largest wavelet width [cells], >= sigma_min."""
+    max_surface_speed: float = 1.0
+    """In-plane surface speed limit of the families that slide the surface (``surface_flow``,
+    ``rotors``): every column's surface velocity is clipped to this norm, and it is the
+    ``surface_flow`` patch's amplitude limit, A in [-max_surface_speed, max_surface_speed]
+    [m/s], > 0."""
+    surface_speed_gain: float = 0.5
+    """``surface_flow`` patch amplitude change per unit action per wave step [m/s], > 0."""
+    max_rotor_speed: float = 25.0
+    """``rotors`` patch spin rate limit, A in [-max_rotor_speed, max_rotor_speed] [rad/s], > 0."""
+    rotor_speed_gain: float = 12.5
+    """``rotors`` patch spin rate change per unit action per wave step [rad/s], > 0."""
 
     # --- spheres --------------------------------------------------------------------------
     num_objects: int = 4
@@ -320,6 +337,10 @@ class TerraShiftConfig:
             "max_amplitude",
             "sigma_min",
             "sigma_max",
+            "max_surface_speed",
+            "surface_speed_gain",
+            "max_rotor_speed",
+            "rotor_speed_gain",
             "sphere_radius",
             "sphere_mass",
             "contact_stiffness",
@@ -364,6 +385,11 @@ class TerraShiftConfig:
             value = getattr(self, name)
             if not isinstance(value, bool):
                 raise ValueError(f"{name} must be true or false, got {value!r}")
+        # imported here: the families build on the config
+        from terrashift_rl.sim.actuators import ACTUATORS
+
+        if self.actuator not in ACTUATORS:
+            raise ValueError(f"actuator must be one of {sorted(ACTUATORS)}, got {self.actuator!r}")
         if self.action_mode not in ACTION_MODES:
             raise ValueError(f"action_mode must be one of {ACTION_MODES}, got {self.action_mode!r}")
         if self.column_shape not in COLUMN_SHAPES:

@@ -10,18 +10,8 @@ import warp as wp
 
 from terrashift_rl.sim.physics import column_center
 from terrashift_rl.sim.types import Model
-from terrashift_rl.sim.wave import wavelet_frame
 
 wp.set_module_options({"enable_backward": False})  # nothing differentiates through it
-
-
-@wp.func
-def uniform(rng: wp.array(dtype=wp.uint32), e: int, low: float, high: float) -> float:
-    """Draws from U[low, high) with environment ``e``'s random stream."""
-    state = rng[e]
-    x = wp.randf(state, low, high)
-    rng[e] = state
-    return x
 
 
 @wp.func
@@ -122,13 +112,6 @@ def reset_episodes(
     model: Model,
     reset_mask: wp.array(dtype=wp.bool),
     rng: wp.array(dtype=wp.uint32),
-    agent_position: wp.array2d(dtype=wp.vec2),
-    agent_velocity: wp.array2d(dtype=wp.vec2),
-    agent_angle: wp.array2d(dtype=float),
-    agent_angular_velocity: wp.array2d(dtype=float),
-    agent_amplitude: wp.array2d(dtype=float),
-    agent_sigma: wp.array2d(dtype=wp.vec2),
-    agent_frame: wp.array2d(dtype=wp.vec4),
     approach_gap: wp.array2d(dtype=float),
     sphere_approach_gap: wp.array2d(dtype=float),
     goal_cell: wp.array2d(dtype=wp.vec2i),
@@ -141,25 +124,13 @@ def reset_episodes(
     episode_goals: wp.array(dtype=wp.int32),
     episode_out_of_bounds: wp.array(dtype=wp.int32),
 ):
-    """Starts a new episode where ``reset_mask`` is set: random wavelets and goals, spheres
-    queued to spawn ``respawn_ticks`` apart. Launch dim: [num_envs]."""
+    """Starts a new episode where ``reset_mask`` is set: random goals, spheres queued to spawn
+    ``respawn_ticks`` apart (the actuator family draws its own start first). Launch dim:
+    [num_envs]."""
     e = wp.tid()
     if not reset_mask[e]:
         return
-    g = float(model.grid_size)
     for k in range(model.num_agents):
-        agent_position[e, k] = wp.vec2(uniform(rng, e, 0.0, g - 1.0), uniform(rng, e, 0.0, g - 1.0))
-        vmax = model.max_velocity
-        agent_velocity[e, k] = wp.vec2(uniform(rng, e, -vmax, vmax), uniform(rng, e, -vmax, vmax))
-        agent_angle[e, k] = uniform(rng, e, 0.0, 6.283185307179586)
-        omax = model.max_angular_velocity
-        agent_angular_velocity[e, k] = uniform(rng, e, -omax, omax)
-        agent_amplitude[e, k] = uniform(rng, e, model.min_amplitude, model.max_amplitude)
-        agent_sigma[e, k] = wp.vec2(
-            uniform(rng, e, model.sigma_min, model.sigma_max),
-            uniform(rng, e, model.sigma_min, model.sigma_max),
-        )
-        agent_frame[e, k] = wavelet_frame(agent_angle[e, k], agent_sigma[e, k])
         approach_gap[e, k] = -1.0
     # goals on distinct cells, at least two cells apart where the tries allow
     for i in range(model.num_goals):

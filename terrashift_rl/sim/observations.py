@@ -92,63 +92,34 @@ def gather_features(
     active: wp.array2d(dtype=wp.int32),
     position: wp.array2d(dtype=wp.vec3),
     velocity: wp.array2d(dtype=wp.vec3),
-    agent_position: wp.array2d(dtype=wp.vec2),
-    agent_velocity: wp.array2d(dtype=wp.vec2),
-    agent_angle: wp.array2d(dtype=float),
-    agent_angular_velocity: wp.array2d(dtype=float),
-    agent_amplitude: wp.array2d(dtype=float),
-    agent_sigma: wp.array2d(dtype=wp.vec2),
     object_features: wp.array3d(dtype=float),
     object_mask: wp.array2d(dtype=wp.bool),
-    agent_features: wp.array3d(dtype=float),
 ):
-    """Writes the normalised object sequence, its mask and the agent features.
+    """Writes the normalised object sequence and its mask (the actuator family writes the
+    agent features).
 
     Objects: [x, y, z, goal x, goal y, goal z, v_x, v_y, v_z]; x and y over the half platform,
     z as the heightmap, velocity clipped to +-max_object_speed and divided by it; zeros where
-    the slot is inactive. Agents: [x, y, theta, A, sigma_x, sigma_y, v_x, v_y, omega], each
-    mapped from its range to [-1, 1]. Launch dim: [num_envs, max(M, K)]: thread (e, i) writes
-    object slot i and agent i of environment e, those that exist.
+    the slot is inactive. Launch dim: [num_envs, M].
     """
     e, i = wp.tid()
     half = model.half_platform
     vmax = model.max_object_speed
-    if i < model.num_objects:
-        on = active[e, i] != 0
-        object_mask[e, i] = on
-        if on:
-            p = position[e, i]
-            goal = assigned_goal(model, height, goal_cell, e, i)
-            v = velocity[e, i]
-            object_features[e, i, 0] = p[0] / half
-            object_features[e, i, 1] = p[1] / half
-            object_features[e, i, 2] = normalised_height(model, p[2])
-            object_features[e, i, 3] = goal[0] / half
-            object_features[e, i, 4] = goal[1] / half
-            object_features[e, i, 5] = normalised_height(model, goal[2])
-            object_features[e, i, 6] = wp.clamp(v[0], -vmax, vmax) / vmax
-            object_features[e, i, 7] = wp.clamp(v[1], -vmax, vmax) / vmax
-            object_features[e, i, 8] = wp.clamp(v[2], -vmax, vmax) / vmax
-        else:
-            for f in range(9):
-                object_features[e, i, f] = 0.0
-    g = float(model.grid_size)
-    srange = model.sigma_max - model.sigma_min
-    if i < model.num_agents:
-        c = agent_position[e, i]
-        u = agent_velocity[e, i]
-        s = agent_sigma[e, i]
-        agent_features[e, i, 0] = 2.0 * c[0] / g - 1.0
-        agent_features[e, i, 1] = 2.0 * c[1] / g - 1.0
-        agent_features[e, i, 2] = agent_angle[e, i] / 3.141592653589793 - 1.0
-        agent_features[e, i, 3] = agent_amplitude[e, i] / model.max_amplitude
-        sx = float(0.0)
-        sy = float(0.0)
-        if srange > 0.0:
-            sx = 2.0 * (s[0] - model.sigma_min) / srange - 1.0
-            sy = 2.0 * (s[1] - model.sigma_min) / srange - 1.0
-        agent_features[e, i, 4] = sx
-        agent_features[e, i, 5] = sy
-        agent_features[e, i, 6] = u[0] / model.max_velocity
-        agent_features[e, i, 7] = u[1] / model.max_velocity
-        agent_features[e, i, 8] = agent_angular_velocity[e, i] / model.max_angular_velocity
+    on = active[e, i] != 0
+    object_mask[e, i] = on
+    if on:
+        p = position[e, i]
+        goal = assigned_goal(model, height, goal_cell, e, i)
+        v = velocity[e, i]
+        object_features[e, i, 0] = p[0] / half
+        object_features[e, i, 1] = p[1] / half
+        object_features[e, i, 2] = normalised_height(model, p[2])
+        object_features[e, i, 3] = goal[0] / half
+        object_features[e, i, 4] = goal[1] / half
+        object_features[e, i, 5] = normalised_height(model, goal[2])
+        object_features[e, i, 6] = wp.clamp(v[0], -vmax, vmax) / vmax
+        object_features[e, i, 7] = wp.clamp(v[1], -vmax, vmax) / vmax
+        object_features[e, i, 8] = wp.clamp(v[2], -vmax, vmax) / vmax
+    else:
+        for f in range(9):
+            object_features[e, i, f] = 0.0

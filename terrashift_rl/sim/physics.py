@@ -20,6 +20,8 @@ Contact model (docs/physics.md has the derivation and the stable ranges):
 
 from __future__ import annotations
 
+import functools
+
 import warp as wp
 
 from terrashift_rl.sim.types import SHAPE_BOX, SHAPE_ELLIPSOID, Model
@@ -292,6 +294,31 @@ def smooth_contact(
 
 
 @wp.func
+def tangential(velocity: wp.vec2, n: wp.vec3) -> wp.vec3:
+    """The part of an in-plane surface velocity (x, y) [m/s] tangent to a contact of normal
+    ``n``: a surface that slides along itself never pushes along its normal."""
+    u = wp.vec3(velocity[0], velocity[1], 0.0)
+    return u - wp.dot(u, n) * n
+
+
+@wp.func
+def smooth_flow(
+    model: Model, flow: wp.array3d(dtype=wp.vec2), e: int, x: float, y: float
+) -> wp.vec2:
+    """Bilinear interpolation at (x, y) [m] of the columns' in-plane surface velocities,
+    constant beyond the outermost column centres (as :func:`smooth_surface`)."""
+    bx = grid_bracket(model, x)
+    by = grid_bracket(model, y)
+    ia = int(bx[0])
+    ib = int(bx[0] + bx[1])
+    ja = int(by[0])
+    jb = int(by[0] + by[1])
+    return (bx[2] * by[2] * flow[e, ja, ia] + bx[3] * by[3] * flow[e, jb, ib]) + (
+        bx[3] * by[2] * flow[e, ja, ib] + bx[2] * by[3] * flow[e, jb, ia]
+    )
+
+
+@wp.func
 def friction_impulse(
     model: Model, slip: wp.vec3, inverse_mass: float, normal_impulse: float
 ) -> wp.vec3:
@@ -437,242 +464,261 @@ def combined_velocity_change(model: Model, impulses: ColumnImpulses) -> wp.spati
     return wp.spatial_vector(dv[0], dv[1], dv[2], dw[0], dw[1], dw[2])
 
 
-@wp.func
-def advance_sphere(
-    model: Model,
-    frac: float,
-    height_prev: wp.array3d(dtype=float),
-    height: wp.array3d(dtype=float),
-    active: wp.array2d(dtype=wp.int32),
-    position_in: wp.array2d(dtype=wp.vec3),
-    velocity_in: wp.array2d(dtype=wp.vec3),
-    angular_velocity_in: wp.array2d(dtype=wp.vec3),
-    position_out: wp.array2d(dtype=wp.vec3),
-    velocity_out: wp.array2d(dtype=wp.vec3),
-    angular_velocity_out: wp.array2d(dtype=wp.vec3),
-    e: int,
-    j: int,
-):
-    """Advances sphere ``j`` of environment ``e`` by one substep, from the ``_in`` state of
-    every sphere to its own ``_out`` state.
-
-    ``frac`` is the fraction of the tick reached in the middle of this substep, (s + 1/2) /
-    substeps; column tops are interpolated to it. A contact's impulse over the substep is
-    then that of the columns' mean position over it, so a column that starts or stops with
-    the tick is not felt a whole substep early or late.
-    """
-    p = position_in[e, j]
-    v = velocity_in[e, j]
-    w = angular_velocity_in[e, j]
-    if active[e, j] == 0:
-        position_out[e, j] = p
-        velocity_out[e, j] = v
-        angular_velocity_out[e, j] = w
-        return
-    dt = model.substep_dt
-    r = model.sphere_radius
-    m = model.sphere_mass
-    inertia = model.sphere_inertia
-
-    # sphere pairs, from the start-of-substep state of both partners
-    v_start = v
-    w_start = w
-    for o in range(model.num_objects):
-        if o == j or active[e, o] == 0:
-            continue
-        d = p - position_in[e, o]
-        dist = wp.length(d)
-        overlap = 2.0 * r - dist
-        if overlap <= 0.0 or dist < 1.0e-9:
-            continue
-        n = d / dist
-        rel = (v_start + wp.cross(w_start, -r * n)) - (
-            velocity_in[e, o] + wp.cross(angular_velocity_in[e, o], r * n)
-        )
-        force = model.contact_stiffness * overlap - model.sphere_contact_damping * wp.dot(rel, n)
-        if force <= 0.0:
-            continue
-        jn = force * dt
-        slip = rel - wp.dot(rel, n) * n
-        inv = 2.0 * (1.0 / m + r * r / inertia)
-        impulse = n * jn + friction_impulse(model, slip, inv, jn)
-        v = v + impulse / m
-        w = w + wp.cross(-r * n, impulse) / inertia
-
-    v = v + wp.vec3(0.0, 0.0, -model.gravity * dt)
-
-    # column contacts, all from the same velocities: the result does not depend on the order in
-    # which they are visited
-    impulses = new_column_impulses()
-    half = model.half_platform
-    if model.column_shape == SHAPE_BOX or model.column_shape == SHAPE_ELLIPSOID:
-        g = model.grid_size
-        i0 = int(wp.floor((p[0] - r + half) / model.cell_size))
-        i1 = int(wp.floor((p[0] + r + half) / model.cell_size))
-        k0 = int(wp.floor((p[1] - r + half) / model.cell_size))
-        k1 = int(wp.floor((p[1] + r + half) / model.cell_size))
-        if i1 >= 0 and i0 < g and k1 >= 0 and k0 < g:
-            # The columns under the sphere are visited row by row, as nested loops would, but
-            # the exact contact, the costly part, has a loop of its own whose every pass takes
-            # the next column that the cheap test keeps: the threads of a GPU warp then share
-            # as many passes as the most such columns any one of them has, not one at every
-            # column where any of them needs it.
-            i0 = wp.max(i0, 0)
-            i1 = wp.min(i1, g - 1)
-            k1 = wp.min(k1, g - 1)
-            ix = i0
-            iy = wp.max(k0, 0)
-            while iy <= k1:
-                found = int(0)
-                column_x = int(0)
-                column_y = int(0)
-                top = float(0.0)
-                while found == 0 and iy <= k1:
-                    top = column_top(model, height_prev, height, e, iy, ix, frac)
-                    cx = column_center(model, ix)
-                    cy = column_center(model, iy)
-                    # cheap rejection: the column lies inside the prism over its cell, and the
-                    # sphere's underside above the cell is no lower than at the cell's nearest
-                    # point to the centre
-                    a = model.column_half_width
-                    gx = wp.max(wp.abs(p[0] - cx) - a, 0.0)
-                    gy = wp.max(wp.abs(p[1] - cy) - a, 0.0)
-                    reach = r * r - gx * gx - gy * gy
-                    if not (reach <= 0.0 or top < p[2] - wp.sqrt(reach)):
-                        found = 1
-                        column_x = ix
-                        column_y = iy
-                    ix += 1
-                    if ix > i1:
-                        ix = i0
-                        iy += 1
-                if found == 0:
-                    break
-                cx = column_center(model, column_x)
-                cy = column_center(model, column_y)
-                nd = wp.vec4()
-                if model.column_shape == SHAPE_BOX:
-                    nd = box_contact(model, p, cx, cy, top)
-                else:
-                    nd = ellipsoid_contact(model, p, cx, cy, top)
-                overlap = r - nd[3]
-                if overlap > 0.0:
-                    surface_velocity = wp.vec3(
-                        0.0, 0.0, column_speed(model, height_prev, height, e, column_y, column_x)
-                    )
-                    impulses = add_column_contact(
-                        model,
-                        impulses,
-                        v,
-                        w,
-                        wp.vec3(nd[0], nd[1], nd[2]),
-                        overlap,
-                        surface_velocity,
-                    )
-    elif wp.abs(p[0]) < half + r and wp.abs(p[1]) < half + r:
-        sc = smooth_contact(model, height_prev, height, e, p, frac)
-        overlap = r - sc[3]
-        if overlap > 0.0:
-            impulses = add_column_contact(
-                model,
-                impulses,
-                v,
-                w,
-                wp.vec3(sc[0], sc[1], sc[2]),
-                overlap,
-                wp.vec3(0.0, 0.0, sc[4]),
-            )
-    dvw = combined_velocity_change(model, impulses)
-    v = v + wp.vec3(dvw[0], dvw[1], dvw[2])
-    w = w + wp.vec3(dvw[3], dvw[4], dvw[5])
-
-    v = v / (1.0 + model.linear_damping * dt)
-    w = w / (1.0 + model.angular_damping * dt)
-    position_out[e, j] = p + v * dt
-    velocity_out[e, j] = v
-    angular_velocity_out[e, j] = w
-
-
 CONTACT_MAX_REGISTERS = 128
 """Registers a GPU thread of the sphere kernels may use. Unbounded they take 180-250, so that
 a multiprocessor (64 K registers) holds 8 warps of them; at 128 it holds 16, twice the threads
 to hide latency with, for a few spills to the L1 cache."""
 
 
-@wp.kernel(cuda_max_registers=CONTACT_MAX_REGISTERS)
-def substep(
-    model: Model,
-    frac: float,
-    height_prev: wp.array3d(dtype=float),
-    height: wp.array3d(dtype=float),
-    active: wp.array2d(dtype=wp.int32),
-    position_in: wp.array2d(dtype=wp.vec3),
-    velocity_in: wp.array2d(dtype=wp.vec3),
-    angular_velocity_in: wp.array2d(dtype=wp.vec3),
-    position_out: wp.array2d(dtype=wp.vec3),
-    velocity_out: wp.array2d(dtype=wp.vec3),
-    angular_velocity_out: wp.array2d(dtype=wp.vec3),
-):
-    """Advances every sphere by one substep (:func:`advance_sphere`). Launch dim:
-    [num_envs, M]."""
-    e, j = wp.tid()
-    advance_sphere(
-        model,
-        frac,
-        height_prev,
-        height,
-        active,
-        position_in,
-        velocity_in,
-        angular_velocity_in,
-        position_out,
-        velocity_out,
-        angular_velocity_out,
-        e,
-        j,
-    )
+@functools.cache
+def sphere_kernels(surface_flow: bool) -> tuple[wp.Kernel, wp.Kernel]:
+    """The sphere kernels, :func:`substep` and :func:`tick_substeps`, for a family that slides
+    the surface in plane (``surface_flow``) or not.
 
-
-@wp.kernel(cuda_max_registers=CONTACT_MAX_REGISTERS)
-def tick_substeps(
-    model: Model,
-    height_prev: wp.array3d(dtype=float),
-    height: wp.array3d(dtype=float),
-    active: wp.array2d(dtype=wp.int32),
-    position: wp.array2d(dtype=wp.vec3),
-    velocity: wp.array2d(dtype=wp.vec3),
-    angular_velocity: wp.array2d(dtype=wp.vec3),
-    position_next: wp.array2d(dtype=wp.vec3),
-    velocity_next: wp.array2d(dtype=wp.vec3),
-    angular_velocity_next: wp.array2d(dtype=wp.vec3),
-):
-    """Advances every sphere of an environment through all substeps of one tick, as many
-    launches of :func:`substep` would. Launch dim: [num_envs].
-
-    One thread per environment, so that a substep can follow the previous one without a
-    launch in between: every sphere's next state goes to the ``_next`` arrays, and only once
-    all of them are there do they become the current state.
+    With ``surface_flow`` every contact's surface velocity adds the part of the column's
+    in-plane velocity (``flow``, the data's ``surface_velocity`` [m/s], [num_envs, G(y),
+    G(x)], vec2) that is tangent to the contact, as a belt moves along its own surface; the
+    smooth surface takes the bilinear interpolation of the columns' velocities under the
+    sphere's centre. The choice
+    is compiled in: without it the kernels never read ``flow`` (it may be empty).
     """
-    e = wp.tid()
-    for s in range(model.substeps):
-        frac = (float(s) + 0.5) / float(model.substeps)
-        for j in range(model.num_objects):
-            advance_sphere(
-                model,
-                frac,
-                height_prev,
-                height,
-                active,
-                position,
-                velocity,
-                angular_velocity,
-                position_next,
-                velocity_next,
-                angular_velocity_next,
-                e,
-                j,
+
+    @wp.func
+    def advance_sphere(
+        model: Model,
+        frac: float,
+        height_prev: wp.array3d(dtype=float),
+        height: wp.array3d(dtype=float),
+        flow: wp.array3d(dtype=wp.vec2),
+        active: wp.array2d(dtype=wp.int32),
+        position_in: wp.array2d(dtype=wp.vec3),
+        velocity_in: wp.array2d(dtype=wp.vec3),
+        angular_velocity_in: wp.array2d(dtype=wp.vec3),
+        position_out: wp.array2d(dtype=wp.vec3),
+        velocity_out: wp.array2d(dtype=wp.vec3),
+        angular_velocity_out: wp.array2d(dtype=wp.vec3),
+        e: int,
+        j: int,
+    ):
+        """Advances sphere ``j`` of environment ``e`` by one substep, from the ``_in`` state of
+        every sphere to its own ``_out`` state.
+
+        ``frac`` is the fraction of the tick reached in the middle of this substep, (s + 1/2) /
+        substeps; column tops are interpolated to it. A contact's impulse over the substep is
+        then that of the columns' mean position over it, so a column that starts or stops with
+        the tick is not felt a whole substep early or late.
+        """
+        p = position_in[e, j]
+        v = velocity_in[e, j]
+        w = angular_velocity_in[e, j]
+        if active[e, j] == 0:
+            position_out[e, j] = p
+            velocity_out[e, j] = v
+            angular_velocity_out[e, j] = w
+            return
+        dt = model.substep_dt
+        r = model.sphere_radius
+        m = model.sphere_mass
+        inertia = model.sphere_inertia
+
+        # sphere pairs, from the start-of-substep state of both partners
+        v_start = v
+        w_start = w
+        for o in range(model.num_objects):
+            if o == j or active[e, o] == 0:
+                continue
+            d = p - position_in[e, o]
+            dist = wp.length(d)
+            overlap = 2.0 * r - dist
+            if overlap <= 0.0 or dist < 1.0e-9:
+                continue
+            n = d / dist
+            rel = (v_start + wp.cross(w_start, -r * n)) - (
+                velocity_in[e, o] + wp.cross(angular_velocity_in[e, o], r * n)
             )
-        for j in range(model.num_objects):
-            position[e, j] = position_next[e, j]
-            velocity[e, j] = velocity_next[e, j]
-            angular_velocity[e, j] = angular_velocity_next[e, j]
+            force = model.contact_stiffness * overlap - model.sphere_contact_damping * wp.dot(
+                rel, n
+            )
+            if force <= 0.0:
+                continue
+            jn = force * dt
+            slip = rel - wp.dot(rel, n) * n
+            inv = 2.0 * (1.0 / m + r * r / inertia)
+            impulse = n * jn + friction_impulse(model, slip, inv, jn)
+            v = v + impulse / m
+            w = w + wp.cross(-r * n, impulse) / inertia
+
+        v = v + wp.vec3(0.0, 0.0, -model.gravity * dt)
+
+        # column contacts, all from the same velocities: the result does not depend on the order in
+        # which they are visited
+        impulses = new_column_impulses()
+        half = model.half_platform
+        if model.column_shape == SHAPE_BOX or model.column_shape == SHAPE_ELLIPSOID:
+            g = model.grid_size
+            i0 = int(wp.floor((p[0] - r + half) / model.cell_size))
+            i1 = int(wp.floor((p[0] + r + half) / model.cell_size))
+            k0 = int(wp.floor((p[1] - r + half) / model.cell_size))
+            k1 = int(wp.floor((p[1] + r + half) / model.cell_size))
+            if i1 >= 0 and i0 < g and k1 >= 0 and k0 < g:
+                # The columns under the sphere are visited row by row, as nested loops would, but
+                # the exact contact, the costly part, has a loop of its own whose every pass takes
+                # the next column that the cheap test keeps: the threads of a GPU warp then share
+                # as many passes as the most such columns any one of them has, not one at every
+                # column where any of them needs it.
+                i0 = wp.max(i0, 0)
+                i1 = wp.min(i1, g - 1)
+                k1 = wp.min(k1, g - 1)
+                ix = i0
+                iy = wp.max(k0, 0)
+                while iy <= k1:
+                    found = int(0)
+                    column_x = int(0)
+                    column_y = int(0)
+                    top = float(0.0)
+                    while found == 0 and iy <= k1:
+                        top = column_top(model, height_prev, height, e, iy, ix, frac)
+                        cx = column_center(model, ix)
+                        cy = column_center(model, iy)
+                        # cheap rejection: the column lies inside the prism over its cell, and the
+                        # sphere's underside above the cell is no lower than at the cell's nearest
+                        # point to the centre
+                        a = model.column_half_width
+                        gx = wp.max(wp.abs(p[0] - cx) - a, 0.0)
+                        gy = wp.max(wp.abs(p[1] - cy) - a, 0.0)
+                        reach = r * r - gx * gx - gy * gy
+                        if not (reach <= 0.0 or top < p[2] - wp.sqrt(reach)):
+                            found = 1
+                            column_x = ix
+                            column_y = iy
+                        ix += 1
+                        if ix > i1:
+                            ix = i0
+                            iy += 1
+                    if found == 0:
+                        break
+                    cx = column_center(model, column_x)
+                    cy = column_center(model, column_y)
+                    nd = wp.vec4()
+                    if model.column_shape == SHAPE_BOX:
+                        nd = box_contact(model, p, cx, cy, top)
+                    else:
+                        nd = ellipsoid_contact(model, p, cx, cy, top)
+                    overlap = r - nd[3]
+                    if overlap > 0.0:
+                        n = wp.vec3(nd[0], nd[1], nd[2])
+                        surface_velocity = wp.vec3(
+                            0.0,
+                            0.0,
+                            column_speed(model, height_prev, height, e, column_y, column_x),
+                        )
+                        if wp.static(surface_flow):
+                            surface_velocity = surface_velocity + tangential(
+                                flow[e, column_y, column_x], n
+                            )
+                        impulses = add_column_contact(
+                            model, impulses, v, w, n, overlap, surface_velocity
+                        )
+        elif wp.abs(p[0]) < half + r and wp.abs(p[1]) < half + r:
+            sc = smooth_contact(model, height_prev, height, e, p, frac)
+            overlap = r - sc[3]
+            if overlap > 0.0:
+                n = wp.vec3(sc[0], sc[1], sc[2])
+                surface_velocity = wp.vec3(0.0, 0.0, sc[4])
+                if wp.static(surface_flow):
+                    surface_velocity = surface_velocity + tangential(
+                        smooth_flow(model, flow, e, p[0], p[1]), n
+                    )
+                impulses = add_column_contact(model, impulses, v, w, n, overlap, surface_velocity)
+        dvw = combined_velocity_change(model, impulses)
+        v = v + wp.vec3(dvw[0], dvw[1], dvw[2])
+        w = w + wp.vec3(dvw[3], dvw[4], dvw[5])
+
+        v = v / (1.0 + model.linear_damping * dt)
+        w = w / (1.0 + model.angular_damping * dt)
+        position_out[e, j] = p + v * dt
+        velocity_out[e, j] = v
+        angular_velocity_out[e, j] = w
+
+    @wp.kernel(cuda_max_registers=CONTACT_MAX_REGISTERS, module="unique")
+    def substep(
+        model: Model,
+        frac: float,
+        height_prev: wp.array3d(dtype=float),
+        height: wp.array3d(dtype=float),
+        flow: wp.array3d(dtype=wp.vec2),
+        active: wp.array2d(dtype=wp.int32),
+        position_in: wp.array2d(dtype=wp.vec3),
+        velocity_in: wp.array2d(dtype=wp.vec3),
+        angular_velocity_in: wp.array2d(dtype=wp.vec3),
+        position_out: wp.array2d(dtype=wp.vec3),
+        velocity_out: wp.array2d(dtype=wp.vec3),
+        angular_velocity_out: wp.array2d(dtype=wp.vec3),
+    ):
+        """Advances every sphere by one substep (:func:`advance_sphere`). Launch dim:
+        [num_envs, M]."""
+        e, j = wp.tid()
+        advance_sphere(
+            model,
+            frac,
+            height_prev,
+            height,
+            flow,
+            active,
+            position_in,
+            velocity_in,
+            angular_velocity_in,
+            position_out,
+            velocity_out,
+            angular_velocity_out,
+            e,
+            j,
+        )
+
+    @wp.kernel(cuda_max_registers=CONTACT_MAX_REGISTERS, module="unique")
+    def tick_substeps(
+        model: Model,
+        height_prev: wp.array3d(dtype=float),
+        height: wp.array3d(dtype=float),
+        flow: wp.array3d(dtype=wp.vec2),
+        active: wp.array2d(dtype=wp.int32),
+        position: wp.array2d(dtype=wp.vec3),
+        velocity: wp.array2d(dtype=wp.vec3),
+        angular_velocity: wp.array2d(dtype=wp.vec3),
+        position_next: wp.array2d(dtype=wp.vec3),
+        velocity_next: wp.array2d(dtype=wp.vec3),
+        angular_velocity_next: wp.array2d(dtype=wp.vec3),
+    ):
+        """Advances every sphere of an environment through all substeps of one tick, as many
+        launches of :func:`substep` would. Launch dim: [num_envs].
+
+        One thread per environment, so that a substep can follow the previous one without a
+        launch in between: every sphere's next state goes to the ``_next`` arrays, and only once
+        all of them are there do they become the current state.
+        """
+        e = wp.tid()
+        for s in range(model.substeps):
+            frac = (float(s) + 0.5) / float(model.substeps)
+            for j in range(model.num_objects):
+                advance_sphere(
+                    model,
+                    frac,
+                    height_prev,
+                    height,
+                    flow,
+                    active,
+                    position,
+                    velocity,
+                    angular_velocity,
+                    position_next,
+                    velocity_next,
+                    angular_velocity_next,
+                    e,
+                    j,
+                )
+            for j in range(model.num_objects):
+                position[e, j] = position_next[e, j]
+                velocity[e, j] = velocity_next[e, j]
+                angular_velocity[e, j] = angular_velocity_next[e, j]
+
+    return substep, tick_substeps

@@ -13,13 +13,14 @@ from collections.abc import Iterator
 import torch
 import warp as wp
 
-from terrashift_rl.sim import events, observations, physics, wave
+from terrashift_rl.sim import actuators, events, observations, physics
+from terrashift_rl.sim.actuators import actuator_for
 from terrashift_rl.sim.config import TerraShiftConfig
 from terrashift_rl.sim.types import ACTION_DIM, Data, build_model
 
 wp.set_module_options({"enable_backward": False})  # nothing differentiates through it
 
-_KERNEL_MODULES = (wave, physics, events, observations)
+_KERNEL_MODULES = (physics, events, observations)
 _INT32_MAX = 2**31 - 1
 _RENAMED_ARRAYS = {"env_mask": "reset_mask"}
 """Earlier name -> name of the data arrays renamed since checkpoints were first written."""
@@ -83,8 +84,17 @@ class Simulator:
             fuse_substeps = self.device.is_cpu
         self.fuse_substeps = fuse_substeps
         """Whether a tick's substeps run as one launch (see the argument)."""
+        self.actuator = actuator_for(self.config)
+        """The actuator family (``config.actuator``)."""
         self.model = build_model(self.config)
-        self.data = Data(self.config, num_envs=num_envs, device=self.device)
+        self.data = Data(
+            self.config,
+            num_envs=num_envs,
+            device=self.device,
+            surface_flow=self.actuator.moves_surface,
+        )
+        self.actuator.allocate(self.data, self.config, self.device)
+        self._sphere_kernels = physics.sphere_kernels(self.actuator.moves_surface)
         self._views: dict[str, torch.Tensor] = {}
         self._torch_stream = None
         self._stream = None
@@ -93,8 +103,9 @@ class Simulator:
             self._stream = wp.stream_from_torch(self._torch_stream)
         self._step_graph = None
         self._reset_graph = None
-        for module in _KERNEL_MODULES:
+        for module in (*_KERNEL_MODULES, *(kernel.module for kernel in self._sphere_kernels)):
             wp.load_module(module, device=self.device)
+        wp.load_module(actuators, device=self.device, recursive=True)
         self.seed(seed)
         if self.device.is_cuda and cuda_graph:
             self._step_graph = self._capture(self._launch_step)
@@ -116,7 +127,7 @@ class Simulator:
         return {
             name: self.view(name).clone()
             for name, value in vars(self.data).items()
-            if isinstance(value, wp.array) and name not in Data.SCRATCH
+            if isinstance(value, wp.array) and name not in Data.SCRATCH + self.actuator.scratch
         }
 
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
@@ -195,25 +206,11 @@ class Simulator:
     # --- launch order ---------------------------------------------------------------------
     def _launch_step(self) -> None:
         d, m = self.data, self.model
-        n, k = self.num_envs, self.config.num_agents
+        n = self.num_envs
         wp.launch(events.begin_decision, dim=n, inputs=[d.reward])
         for _ in range(self.config.action_repeat):
-            wp.launch(
-                wave.update_agents,
-                dim=(n, k),
-                inputs=[
-                    m,
-                    d.action,
-                    d.agent_position,
-                    d.agent_velocity,
-                    d.agent_angle,
-                    d.agent_angular_velocity,
-                    d.agent_amplitude,
-                    d.agent_sigma,
-                    d.agent_frame,
-                ],
-            )
-            self._launch_heights(masked=False, keep_velocity=True)
+            self.actuator.launch_update(self)
+            self.actuator.launch_surface(self, reset=False)
             self._launch_physics()
             self._launch_events()
         wp.launch(
@@ -226,6 +223,8 @@ class Simulator:
     def _launch_reset(self) -> None:
         d, m = self.data, self.model
         n = self.num_envs
+        # the family's start is drawn first, then the goals, from the same random stream
+        self.actuator.launch_reset(self)
         wp.launch(
             events.reset_episodes,
             dim=n,
@@ -233,13 +232,6 @@ class Simulator:
                 m,
                 d.reset_mask,
                 d.rng,
-                d.agent_position,
-                d.agent_velocity,
-                d.agent_angle,
-                d.agent_angular_velocity,
-                d.agent_amplitude,
-                d.agent_sigma,
-                d.agent_frame,
                 d.approach_gap,
                 d.sphere_approach_gap,
                 d.goal_cell,
@@ -253,7 +245,7 @@ class Simulator:
                 d.episode_out_of_bounds,
             ],
         )
-        self._launch_heights(masked=True, keep_velocity=False)
+        self.actuator.launch_surface(self, reset=True)
         wp.launch(
             events.spawn_due,
             dim=n,
@@ -273,41 +265,20 @@ class Simulator:
         )
         self._launch_observations()
 
-    def _launch_heights(self, *, masked: bool, keep_velocity: bool) -> None:
-        """Column heights from the wavelets: every environment, or those in ``reset_mask``;
-        moving from the previous heights over the tick, or at rest (after a reset)."""
-        d, g = self.data, self.config.grid_size
-        wp.launch(
-            wave.compute_heights,
-            dim=(self.num_envs, g, g),
-            inputs=[
-                self.model,
-                d.reset_mask,
-                int(masked),
-                int(keep_velocity),
-                d.agent_position,
-                d.agent_amplitude,
-                d.agent_frame,
-                d.column_height_prev,
-                d.column_height,
-            ],
-        )
-
     def _launch_physics(self) -> None:
         d, m = self.data, self.model
         current = (d.sphere_position, d.sphere_velocity, d.sphere_angular_velocity)
         scratch = (d.sphere_position_next, d.sphere_velocity_next, d.sphere_angular_velocity_next)
-        fields = (d.column_height_prev, d.column_height, d.sphere_active)
+        fields = (d.column_height_prev, d.column_height, d.surface_velocity, d.sphere_active)
+        substep, tick_substeps = self._sphere_kernels
         if self.fuse_substeps:
-            wp.launch(
-                physics.tick_substeps, dim=self.num_envs, inputs=[m, *fields, *current, *scratch]
-            )
+            wp.launch(tick_substeps, dim=self.num_envs, inputs=[m, *fields, *current, *scratch])
             return
         substeps = self.config.substeps
         for s in range(substeps):
             src, dst = (current, scratch) if s % 2 == 0 else (scratch, current)
             wp.launch(
-                physics.substep,
+                substep,
                 dim=(self.num_envs, self.config.num_objects),
                 inputs=[m, (s + 0.5) / substeps, *fields, *src, *dst],
             )
@@ -350,7 +321,7 @@ class Simulator:
         )
         wp.launch(
             observations.gather_features,
-            dim=(n, max(self.config.num_objects, self.config.num_agents)),
+            dim=(n, self.config.num_objects),
             inputs=[
                 m,
                 d.column_height,
@@ -358,17 +329,11 @@ class Simulator:
                 d.sphere_active,
                 d.sphere_position,
                 d.sphere_velocity,
-                d.agent_position,
-                d.agent_velocity,
-                d.agent_angle,
-                d.agent_angular_velocity,
-                d.agent_amplitude,
-                d.agent_sigma,
                 d.object_features,
                 d.object_mask,
-                d.agent_features,
             ],
         )
+        self.actuator.launch_observe(self)
 
     # --- execution ------------------------------------------------------------------------
     @contextlib.contextmanager

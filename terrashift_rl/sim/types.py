@@ -24,8 +24,9 @@ OBJECT_FEATURES = 9
 AGENT_FEATURES = 9
 """Per-agent observation: x, y, theta, amplitude, sigma_x, sigma_y, v_x, v_y, omega."""
 ACTION_NAMES = ("v_x", "v_y", "omega", "amplitude", "sigma_x", "sigma_y")
-"""Per-agent action, each in [-1, 1]: the change or the target of each of these wavelet
-quantities, or with ``position`` actions the target position in place of the velocities
+"""Per-agent action of every actuator family, each in [-1, 1]: the change or the target of
+each of these quantities of the agent's patch (the wavelet, for the paper's actuator), or
+with ``position`` actions the target position in place of the velocities
 (``TerraShiftConfig.action_mode``)."""
 ACTION_DIM = len(ACTION_NAMES)
 
@@ -189,12 +190,9 @@ def build_model(config: TerraShiftConfig) -> Model:
     m.velocity_gain = config.velocity_gain
     m.position_gain = config.position_gain
     m.angular_velocity_gain = config.angular_velocity_gain
-    m.amplitude_gain = config.amplitude_gain
     m.sigma_gain = config.sigma_gain
     m.max_velocity = config.max_velocity
     m.max_angular_velocity = config.max_angular_velocity
-    m.max_amplitude = config.max_amplitude
-    m.min_amplitude = config.min_amplitude_ratio * config.max_amplitude
     m.sigma_min = config.sigma_min
     m.sigma_max = config.sigma_max
 
@@ -254,6 +252,10 @@ def build_model(config: TerraShiftConfig) -> Model:
     m.heightmap_resolution = config.heightmap_resolution
     m.heightmap_max_height = config.heightmap_max_height
     m.max_object_speed = config.max_object_speed
+    # the family's own constants; imported here as the families build on this module
+    from terrashift_rl.sim.actuators import actuator_for
+
+    actuator_for(config).configure(m, config)
     return m
 
 
@@ -261,22 +263,31 @@ class Data:
     """Per-environment state and outputs; every array's leading dimension is the environment.
 
     The arrays named in :attr:`SCRATCH` are not state: every step and reset writes them before
-    it reads them.
+    it reads them. The actuator family adds its own state arrays
+    (:meth:`~terrashift_rl.sim.actuators.Actuator.allocate`).
 
     Args:
         config: the scene's config.
         num_envs: number of environments.
         device: Warp device.
+        surface_flow: allocate ``surface_velocity`` (the family slides the surface in plane).
     """
 
     SCRATCH = (
-        "agent_frame",
+        "surface_velocity",
         "sphere_position_next",
         "sphere_velocity_next",
         "sphere_angular_velocity_next",
     )
 
-    def __init__(self, config: TerraShiftConfig, *, num_envs: int, device: wp.context.Device):
+    def __init__(
+        self,
+        config: TerraShiftConfig,
+        *,
+        num_envs: int,
+        device: wp.context.Device,
+        surface_flow: bool = False,
+    ):
         n, k, m = num_envs, config.num_agents, config.num_objects
         g, r = config.grid_size, config.heightmap_resolution
 
@@ -284,23 +295,6 @@ class Data:
             return wp.zeros(shape, dtype=dtype, device=device)
 
         self.num_envs = n
-        # wave agents
-        self.agent_position = zeros((n, k), wp.vec2)
-        """Wavelet centres [cells], shape [num_envs, K], vec2."""
-        self.agent_velocity = zeros((n, k), wp.vec2)
-        """Wavelet velocities [cells / wave step], shape [num_envs, K], vec2."""
-        self.agent_angle = zeros((n, k))
-        """Wavelet orientations theta in [0, 2 pi) [rad], shape [num_envs, K]."""
-        self.agent_angular_velocity = zeros((n, k))
-        """Wavelet angular velocities [rad / wave step], shape [num_envs, K]."""
-        self.agent_amplitude = zeros((n, k))
-        """Wavelet amplitudes [m], shape [num_envs, K]."""
-        self.agent_sigma = zeros((n, k), wp.vec2)
-        """Wavelet widths sigma_x, sigma_y [cells], shape [num_envs, K], vec2."""
-        self.agent_frame = zeros((n, k), wp.vec4)
-        """What the height sum needs of each wavelet's angle and widths, (cos theta, sin theta,
-        1 / sigma_x^2, 1 / sigma_y^2) [1, 1, 1/cells^2, 1/cells^2]: derived once per tick, not
-        at every column. Shape [num_envs, K], vec4."""
         self.action = zeros((n, k, ACTION_DIM))
         """Current per-agent actions in [-1, 1], shape [num_envs, K, 6]."""
         # columns
@@ -308,6 +302,10 @@ class Data:
         """Wave heights at the start of the current tick [m], shape [num_envs, G(y), G(x)]."""
         self.column_height = zeros((n, g, g))
         """Wave heights at the end of the current tick [m], shape [num_envs, G(y), G(x)]."""
+        self.surface_velocity = zeros((n, g, g) if surface_flow else (n, 0, 0), wp.vec2)
+        """In-plane velocity with which each column's surface slides over the current tick
+        [m/s], shape [num_envs, G(y), G(x)], vec2; empty unless ``surface_flow`` (the actuator
+        family slides the surface)."""
         # spheres: the substep kernel reads one buffer and writes the other
         self.sphere_position = zeros((n, m), wp.vec3)
         """Sphere centres [m], shape [num_envs, M], vec3."""
@@ -359,4 +357,4 @@ class Data:
         self.object_mask = zeros((n, m), wp.bool)
         """True where the object slot holds an active sphere, shape [num_envs, M]."""
         self.agent_features = zeros((n, k, AGENT_FEATURES))
-        """Normalised wavelet parameters in [-1, 1], shape [num_envs, K, 9]."""
+        """Normalised agent (patch) parameters in [-1, 1], shape [num_envs, K, 9]."""
