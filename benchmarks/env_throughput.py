@@ -8,6 +8,7 @@ plumbing and resets). Prints a table and writes JSON (after every size).
 
     python benchmarks/env_throughput.py --device cuda --profile 65536
     python benchmarks/env_throughput.py --device cpu --num-envs 1 64 --seconds 2
+    python benchmarks/env_throughput.py --device cuda --num-envs 65536 --actuator surface_flow
 
 ``--profile N ...`` then adds, at each size N (each measured size if none is given), the GPU
 time and launch count of every kernel over eager (non-graph) steps, both ways of launching the
@@ -25,7 +26,7 @@ import warp as wp
 from common import benchmark_parser, run_header, table_header, table_row, write_results
 
 from terrashift_rl.envs import GROUP, TerraShiftEnv
-from terrashift_rl.sim import Simulator, TerraShiftConfig
+from terrashift_rl.sim import ACTUATORS, Simulator, TerraShiftConfig
 
 DEFAULT_SIZES = [1, 4, 16, 64, 256, 1024, 4096, 16384, 65536]
 LAUNCHES = {True: "fused", False: "per_substep"}
@@ -127,6 +128,7 @@ def main() -> None:
     parser.add_argument("--num-envs", type=int, nargs="+", default=DEFAULT_SIZES)
     parser.add_argument("--seconds", type=float, default=2.0, help="timing window per size")
     parser.add_argument("--column-shape", default="ellipsoid")
+    parser.add_argument("--actuator", default="wavelets", choices=sorted(ACTUATORS))
     parser.add_argument("--out", type=Path, default=None, help="JSON path (default by device)")
     parser.add_argument(
         "--profile",
@@ -141,8 +143,12 @@ def main() -> None:
     device = torch.device(args.device)
     if profile_sizes and device.type != "cuda":
         parser.error("--profile times GPU kernels: it needs --device cuda")
-    config = TerraShiftConfig.preset("pretrain", column_shape=args.column_shape)
-    out = args.out or Path(__file__).parent / "results" / f"env_throughput_{device.type}.json"
+    config = TerraShiftConfig.preset(
+        "pretrain", column_shape=args.column_shape, actuator=args.actuator
+    )
+    family = "" if args.actuator == "wavelets" else f"_{args.actuator}"
+    default_out = f"env_throughput_{device.type}{family}.json"
+    out = args.out or Path(__file__).parent / "results" / default_out
     payload = {
         "benchmark": "env_throughput",
         **run_header(device),
@@ -151,6 +157,7 @@ def main() -> None:
         "config": {
             "preset": "pretrain",
             "column_shape": config.column_shape,
+            "actuator": config.actuator,
             "substeps": config.substeps,
             "action_repeat": config.action_repeat,
         },
@@ -158,8 +165,8 @@ def main() -> None:
         "profiles": [],
     }
     print(
-        f"TerraShift env throughput (env-steps/s), pretrain scene ({config.column_shape}), "
-        f"{payload['device']}"
+        f"TerraShift env throughput (env-steps/s), pretrain scene ({config.actuator}, "
+        f"{config.column_shape}), {payload['device']}"
     )
     print(
         table_header(["num_envs", "simulator", "substeps", "fused", "per substep", "TorchRL env"])

@@ -1,6 +1,6 @@
 """Scripted scenes: set column heights, place spheres, step the physics, read states back.
 
-A scripted scene bypasses the wave agents and the episode logic (goals, respawns, reward), so
+A scripted scene bypasses the agents and the episode logic (goals, respawns, reward), so
 tests and tutorials can pose exact physical situations.
 """
 
@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import torch
 
+from terrashift_rl.sim.actuators import ACTUATORS
 from terrashift_rl.sim.config import TerraShiftConfig
 from terrashift_rl.sim.simulator import Simulator
 
 
 class ScriptedScene:
-    """Columns and spheres under direct control.
+    """Columns, surface velocities and spheres under direct control.
 
     Args:
         config: scene parameters; ``num_objects`` is the number of sphere slots.
@@ -81,6 +82,18 @@ class ScriptedScene:
         if heights.abs().max() > limit + 1e-9:
             raise ValueError(f"column heights must lie in [-{limit}, {limit}] m")
         target.copy_(heights)
+
+    def set_surface_velocity(self, velocity: torch.Tensor) -> None:
+        """Sets the in-plane velocity [m/s] with which each column's surface slides, shape
+        [num_envs, G(y), G(x), 2] or broadcastable to it; it holds until set again. Needs an
+        actuator family that slides the surface (``ValueError`` otherwise)."""
+        if not self.sim.actuator.moves_surface:
+            raise ValueError(
+                f"the {self.config.actuator!r} actuator does not slide the surface; choose one "
+                f"of {[name for name, family in ACTUATORS.items() if family.moves_surface]}"
+            )
+        target = self.sim.view("surface_velocity")
+        target.copy_(torch.as_tensor(velocity, dtype=target.dtype).expand_as(target))
 
     def place_spheres(
         self,
