@@ -13,6 +13,7 @@ import math
 import torch
 from tensordict import TensorDictBase
 
+from terrashift_rl.sim import ACTUATORS
 from terrashift_rl.sim.config import TerraShiftConfig
 from terrashift_rl.sim.types import ACTION_DIM
 
@@ -79,7 +80,10 @@ class ZeroPolicy:
 
 
 class ScriptedHeuristicPolicy:
-    """Pushes each sphere towards its goal with a Gaussian bump placed just behind it.
+    """Pushes each sphere towards its goal with its agents' patches, for every actuator family:
+    a Gaussian bump just behind it (``wavelets``), a patch of surface flowing under it towards
+    the goal (``surface_flow``), or rotors beside it whose rims move towards the goal
+    (``rotors``).
 
     The policy reads only the observation (``("agents", "observation")``, ``"objects"``,
     ``"objects_mask"``) and the scene constants of ``config``; it never touches the simulator.
@@ -95,7 +99,12 @@ class ScriptedHeuristicPolicy:
     sphere to its goal, the agent's target is ``sphere - offset * u``: a bump that far behind
     the sphere, on the side away from its goal, tilts the columns under the sphere towards the
     goal, and the sphere rolls down the bump's flank. Serving agents beyond the first of a
-    sphere (``k >= M``) stand ``extra_offset`` cells further back, widening the slope.
+    sphere (``k >= M``) stand ``extra_offset`` cells further back, widening the slope. With
+    ``surface_flow`` the target is the sphere itself (the later agents ``extra_offset`` behind
+    it) and the patch turns its flow towards the goal. With ``rotors`` the first agent of a
+    sphere stands ``sigma`` cells (where its rim is fastest) to the right of the line from the
+    sphere to its goal and spins anticlockwise, the later ones as far to the left, spinning
+    clockwise: either rim moves the sphere towards its goal.
 
     **How to get there.** The wavelet position is second-order: an action changes its velocity
     by ``velocity_gain * wave_step`` per physics tick. A PD-like law sets a desired velocity
@@ -112,10 +121,12 @@ class ScriptedHeuristicPolicy:
     actions move it as ``delta`` actions do.
 
     **Shape.** The same rule drives the other parameters to set points: amplitude towards
-    ``amplitude * max_amplitude`` once the wavelet is within ``engage_distance`` cells of its
-    target (towards zero while it travels, so it does not bump spheres on its way), both widths
-    towards ``sigma`` cells, and the spin towards zero. With ``target`` and ``shape`` actions
-    the amplitude and width actions are those set points themselves.
+    ``amplitude`` times the family's largest (with the rotors' sign) once the patch is within
+    ``engage_distance`` cells of its target (towards zero while it travels, so it does not
+    disturb spheres on its way), both widths towards ``sigma`` cells, and the spin towards
+    zero, or with ``surface_flow`` towards ``heading_gain`` times the angle from the patch's
+    orientation to the goal's direction. With ``target`` and ``shape`` actions the amplitude
+    and width actions are those set points themselves.
 
     Args:
         config: the scene's config (grid, platform, gains, limits, timing).
@@ -126,6 +137,8 @@ class ScriptedHeuristicPolicy:
         sigma: set-point width [cells], clipped to [sigma_min, sigma_max].
         position_gain: desired velocity per cell of position error [1 / wave step].
         engage_distance: distance [cells] to the target below which the bump is raised.
+        heading_gain: with ``surface_flow``, the spin aimed at per radian between the flow's
+            direction and the goal's [1 / wave step].
 
     Example:
         >>> from tensordict import TensorDict
@@ -150,6 +163,7 @@ class ScriptedHeuristicPolicy:
         sigma: float = 1.0,
         position_gain: float = 1.0,
         engage_distance: float = 1.5,
+        heading_gain: float = 1.0,
     ):
         if not 0.0 < amplitude <= 1.0:
             raise ValueError(f"amplitude must be in (0, 1], got {amplitude}")
@@ -158,6 +172,7 @@ class ScriptedHeuristicPolicy:
             ("extra_offset", extra_offset),
             ("position_gain", position_gain),
             ("engage_distance", engage_distance),
+            ("heading_gain", heading_gain),
         ):
             if not math.isfinite(value) or value < 0.0:
                 raise ValueError(f"{name} must be a finite number >= 0, got {value}")
@@ -168,6 +183,10 @@ class ScriptedHeuristicPolicy:
         self.sigma = min(max(sigma, config.sigma_min), config.sigma_max)
         self.position_gain = position_gain
         self.engage_distance = engage_distance
+        self.heading_gain = heading_gain
+        self.amplitude_limit, self.amplitude_gain = ACTUATORS[config.actuator].amplitude_limits(
+            config
+        )[1:]
 
     # --- observation decoding -------------------------------------------------------------
     def _metres_to_cells(self, normalised: torch.Tensor) -> torch.Tensor:
@@ -202,7 +221,8 @@ class ScriptedHeuristicPolicy:
 
         # wavelet state in physical units (cells, cells / wave step, m, rad / wave step)
         position = (agent[..., 0:2] + 1.0) * (0.5 * g)
-        amplitude = agent[..., 3] * cfg.max_amplitude
+        amplitude = agent[..., 3] * self.amplitude_limit
+        angle = (agent[..., 2] + 1.0) * math.pi
         widths = (agent[..., 4:6] + 1.0) * (0.5 * (cfg.sigma_max - cfg.sigma_min)) + cfg.sigma_min
         velocity = agent[..., 6:8] * cfg.max_velocity
         spin = agent[..., 8] * cfg.max_angular_velocity
@@ -215,13 +235,27 @@ class ScriptedHeuristicPolicy:
         cells_per_second = mine[..., 6:8] * cfg.max_object_speed / cfg.cell_size
         sphere_velocity = cells_per_second / (cfg.wave_step * cfg.physics_hz)
 
-        # target: behind the sphere, on the side away from its goal
+        # target: behind the sphere (wavelets, flow) or beside it (rotors)
         to_goal = goal - sphere
         direction = to_goal / to_goal.norm(dim=-1, keepdim=True).clamp(min=1e-6)
-        back = self.offset + self.extra_offset * (
-            torch.arange(k, device=agent.device) >= mask.shape[-1]
-        )
-        target = sphere - back.unsqueeze(-1) * direction
+        later = torch.arange(k, device=agent.device) >= mask.shape[-1]
+        desired_spin = torch.zeros_like(spin)
+        sign = torch.ones_like(spin)
+        if cfg.actuator == "rotors":
+            sign = torch.where(later, -1.0, 1.0).expand_as(spin)
+            right = torch.stack([direction[..., 1], -direction[..., 0]], dim=-1)
+            target = sphere - (sign * self.sigma).unsqueeze(-1) * right
+        else:
+            back = self.extra_offset * later
+            if cfg.actuator == "wavelets":
+                back = back + self.offset
+            target = sphere - back.unsqueeze(-1) * direction
+        if cfg.actuator == "surface_flow":
+            heading = torch.atan2(direction[..., 1], direction[..., 0])
+            turn_by = torch.remainder(heading - angle + math.pi, 2 * math.pi) - math.pi
+            desired_spin = (self.heading_gain * turn_by).clamp(
+                -cfg.max_angular_velocity, cfg.max_angular_velocity
+            )
         error = target - position
         if cfg.wrap_edges:
             error = error - g * torch.floor(error / g + 0.5)
@@ -234,24 +268,24 @@ class ScriptedHeuristicPolicy:
 
         # shape set points: a positive bump of width sigma, no spin; flat while travelling
         close = engaged & (distance <= self.engage_distance)
-        amplitude_target = torch.where(close, self.amplitude * cfg.max_amplitude, 0.0)
+        amplitude_target = torch.where(close, sign * self.amplitude * self.amplitude_limit, 0.0)
         # a set point is the action itself where the mode sets targets; otherwise the action
         # is the error over the change that one decision of full action produces
         per_decision = cfg.wave_step * cfg.action_repeat
         if cfg.action_mode in ("target", "shape"):
             half_range = 0.5 * (cfg.sigma_max - cfg.sigma_min)
-            grow = amplitude_target / cfg.max_amplitude
+            grow = amplitude_target / self.amplitude_limit
             width = (self.sigma - cfg.sigma_min) / half_range - 1.0 if half_range > 0 else 0.0
             widen = torch.full_like(widths, width)
         else:
-            grow = (amplitude_target - amplitude) / (cfg.amplitude_gain * per_decision)
+            grow = (amplitude_target - amplitude) / (self.amplitude_gain * per_decision)
             widen = (self.sigma - widths) / (cfg.sigma_gain * per_decision)
         if cfg.action_mode == "target":
             move = desired / cfg.max_velocity
-            turn = torch.zeros_like(spin)
+            turn = desired_spin / cfg.max_angular_velocity
         else:
             move = (desired - velocity) / (cfg.velocity_gain * per_decision)
-            turn = -spin / (cfg.angular_velocity_gain * per_decision)
+            turn = (desired_spin - spin) / (cfg.angular_velocity_gain * per_decision)
             if cfg.action_mode == "position":
                 # the point whose offset the simulator's servo turns into that same velocity
                 aim = position + desired / cfg.position_gain

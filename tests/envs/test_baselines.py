@@ -1,12 +1,15 @@
 """Baseline policies: action shapes and ranges, and the heuristic's steering on posed scenes."""
 
+import math
+
 import pytest
 import torch
 from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
 
 from terrashift_rl.envs import GROUP, TerraShiftEnv
 from terrashift_rl.envs.baselines import RandomPolicy, ScriptedHeuristicPolicy, ZeroPolicy
-from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.sim import ACTUATORS, TerraShiftConfig
 
 CFG = TerraShiftConfig(max_episode_steps=64)
 G = CFG.grid_size
@@ -240,3 +243,52 @@ def test_heuristic_rejects_bad_parameters():
         ScriptedHeuristicPolicy(CFG, amplitude=0.0)
     with pytest.raises(ValueError, match="offset"):
         ScriptedHeuristicPolicy(CFG, offset=-1.0)
+
+
+def family_config(actuator: str, num_agents: int = 1) -> TerraShiftConfig:
+    return TerraShiftConfig(actuator=actuator, num_agents=num_agents, num_objects=1, num_goals=1)
+
+
+def with_angle(td: TensorDict, angle: float) -> TensorDict:
+    """Sets every patch's orientation [rad] in a posed scene."""
+    td[GROUP, "observation"][..., 2] = angle / math.pi - 1
+    return td
+
+
+def test_flow_heuristic_stands_on_the_sphere_and_turns_its_flow_towards_the_goal():
+    cfg = family_config("surface_flow")
+    policy = ScriptedHeuristicPolicy(cfg)
+    sphere, goal = (7.0, 7.0), (12.0, 7.0)  # the goal along +x: the flow should point at 0 rad
+    far = policy(posed_scene([(3.0, 7.0)], [sphere], [goal], cfg))[GROUP, "action"][0, 0]
+    assert far[VX] > 0.5 and abs(far[VY]) < 1e-5
+    assert far[AMP] == 0.0  # no flow while it travels
+    on_it = posed_scene([sphere], [sphere], [goal], cfg)
+    left_of_goal = policy(with_angle(on_it.clone(), 0.5 * math.pi))[GROUP, "action"][0, 0]
+    right_of_goal = policy(with_angle(on_it.clone(), 1.5 * math.pi))[GROUP, "action"][0, 0]
+    assert left_of_goal[OMEGA] < -0.5 < 0.5 < right_of_goal[OMEGA]  # the short way round
+    assert left_of_goal[AMP] > 0.5 and abs(left_of_goal[VX]) < 1e-5
+
+
+def test_rotor_heuristic_spins_beside_the_sphere_with_its_rim_moving_towards_the_goal():
+    """With the goal along +x, the first rotor stands one width (sigma = 1 cell) to the
+    sphere's right seen along the way, at +y, spinning anticlockwise; the second as far to
+    its left, clockwise: at the sphere either surface moves along +x."""
+    cfg = family_config("rotors", num_agents=2)
+    policy = ScriptedHeuristicPolicy(cfg)
+    sphere, goal = (7.0, 7.0), (12.0, 7.0)
+    td = posed_scene([(7.0, 8.0), (7.0, 6.0)], [sphere], [goal], cfg)
+    action = policy(td)[GROUP, "action"][0]
+    assert action[0, AMP] > 0.5 and action[1, AMP] < -0.5
+    assert action[:, VX : VY + 1].abs().max() < 1e-5  # both already where they should be
+    swapped = policy(posed_scene([(7.0, 6.0), (7.0, 8.0)], [sphere], [goal], cfg))
+    assert swapped[GROUP, "action"][0, 0, VY] > 0.5 and swapped[GROUP, "action"][0, 1, VY] < -0.5
+
+
+@pytest.mark.parametrize("actuator", sorted(ACTUATORS))
+def test_every_family_passes_torchrl_spec_checks_and_takes_every_baseline(actuator):
+    env = TerraShiftEnv(num_envs=2, seed=0, actuator=actuator, max_episode_steps=8)
+    check_env_specs(env, seed=0)
+    for policy in (RandomPolicy(seed=0), ZeroPolicy(), ScriptedHeuristicPolicy(env.config)):
+        td = env.rollout(10, policy, break_when_any_done=False)
+        assert torch.isfinite(td["next", GROUP, "reward"]).all()
+        assert td[GROUP, "action"].abs().max() <= 1.0
