@@ -34,6 +34,7 @@ class TerraShiftEnv(EnvBase):
     ``"objects_mask"``                  [N, M] bool          True where the slot holds a sphere
     ``"episode_goals"``                 [N, 1] int64         goals reached since the reset
     ``"episode_out_of_bounds"``         [N, 1] int64         spheres lost since the reset
+    ``"episode_surface_work"``          [N, 1]               the surface's work on the spheres [J]
     ``("agents", "action")``            [N, K, 6]            deltas or targets in [-1, 1] (clipped)
     ``("agents", "reward")``            [N, K, 1]            the team reward, same for every agent
     ``done/terminated/truncated``       [N, 1], [N, K, 1]    at the root and under ``"agents"``
@@ -107,6 +108,7 @@ class TerraShiftEnv(EnvBase):
                     key: Unbounded(shape=(n, 1), dtype=torch.int64, device=dev)
                     for key in EVENT_KEYS
                 },
+                "episode_surface_work": Unbounded(shape=(n, 1), device=dev),
             },
             shape=(n,),
         )
@@ -210,4 +212,6 @@ class TerraShiftEnv(EnvBase):
         }
         for key in EVENT_KEYS:
             out[key] = sim.view(key).to(torch.int64).unsqueeze(-1)
+        # counted with config.count_surface_work, else 0
+        out["episode_surface_work"] = sim.view("surface_work").sum(-1, keepdim=True)
         return TensorDict(out, batch_size=(n,), device=self.device)

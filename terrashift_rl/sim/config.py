@@ -139,6 +139,9 @@ class TerraShiftConfig:
     """``rotors`` patch spin rate limit, A in [-max_rotor_speed, max_rotor_speed] [rad/s], > 0."""
     rotor_speed_gain: float = 12.5
     """``rotors`` patch spin rate change per unit action per wave step [rad/s], > 0."""
+    count_surface_work: bool = False
+    """Count the work the surface does on the spheres (``surface_work``, the actuator's
+    energy figure). Compiled into the sphere kernels only when on: it costs them registers."""
 
     # --- spheres --------------------------------------------------------------------------
     num_objects: int = 4
@@ -381,7 +384,7 @@ class TerraShiftConfig:
             "sphere_approach_scale",
         ):
             _check_float(self, name)
-        for name in ("wrap_edges", "respawn"):
+        for name in ("wrap_edges", "respawn", "count_surface_work"):
             value = getattr(self, name)
             if not isinstance(value, bool):
                 raise ValueError(f"{name} must be true or false, got {value!r}")

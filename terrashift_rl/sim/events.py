@@ -117,6 +117,7 @@ def reset_episodes(
     goal_cell: wp.array2d(dtype=wp.vec2i),
     active: wp.array2d(dtype=wp.int32),
     spawn_timer: wp.array2d(dtype=wp.int32),
+    surface_work: wp.array2d(dtype=float),
     step_count: wp.array(dtype=wp.int32),
     reward: wp.array(dtype=float),
     terminated: wp.array(dtype=wp.bool),
@@ -149,6 +150,7 @@ def reset_episodes(
         active[e, j] = 0
         spawn_timer[e, j] = j * model.respawn_ticks
         sphere_approach_gap[e, j] = -1.0
+        surface_work[e, j] = 0.0
     step_count[e] = 0
     reward[e] = 0.0
     terminated[e] = False

@@ -360,6 +360,12 @@ class ColumnImpulses:
     """Sum of their slip velocities [m/s]."""
     normal_cross_slips: wp.vec3
     """Sum of their normals crossed with their slip velocities [m/s]."""
+    normal_power: float
+    """Sum of the normal impulses dotted with their surfaces' velocities [J]."""
+    approach_power: float
+    """The same of the approaching contacts' dashpot impulses [J]."""
+    friction_power: float
+    """Sum of the friction impulses dotted with their surfaces' velocities [J]."""
 
 
 @wp.func
@@ -391,9 +397,12 @@ def add_column_contact(
         return impulses
     jn = force * dt
     impulses.normal = impulses.normal + n * jn
+    surface_normal_speed = wp.dot(surface_velocity, n)
+    impulses.normal_power = impulses.normal_power + jn * surface_normal_speed
     # an approaching contact's force is never clipped, so its dashpot part can be scaled later
     if normal_speed < 0.0:
         impulses.approach_damping = impulses.approach_damping + n * (damping * dt)
+        impulses.approach_power = impulses.approach_power + damping * dt * surface_normal_speed
         impulses.damping_share = (
             impulses.damping_share + model.column_contact_damping * dt / model.sphere_mass
         )
@@ -402,6 +411,7 @@ def add_column_contact(
     impulses.friction = impulses.friction + jt
     impulses.friction_moment = impulses.friction_moment + wp.cross(arm, jt)
     impulses.friction_work = impulses.friction_work + wp.dot(jt, slip)
+    impulses.friction_power = impulses.friction_power + wp.dot(jt, surface_velocity)
     magnitude = wp.length(jt)
     if magnitude > 0.0:
         impulses.friction_cone = wp.min(impulses.friction_cone, model.friction * jn / magnitude)
@@ -464,6 +474,38 @@ def combined_velocity_change(model: Model, impulses: ColumnImpulses) -> wp.spati
     return wp.spatial_vector(dv[0], dv[1], dv[2], dw[0], dw[1], dw[2])
 
 
+@wp.func
+def column_work(
+    model: Model, impulses: ColumnImpulses, velocity_change: wp.spatial_vector
+) -> float:
+    """Work [J] the columns' surfaces do on a sphere in one substep through the impulses that
+    :func:`combined_velocity_change` made of ``impulses`` (its result ``velocity_change``):
+    each contact's impulse dotted with its surface's velocity. The scale of the dashpots
+    follows from the impulses; that of the friction from the velocity change it made."""
+    m = model.sphere_mass
+    inertia = model.sphere_inertia
+    r = model.sphere_radius
+    damping_scale = 1.0 / wp.max(impulses.damping_share, 1.0)
+    normal = impulses.normal - (1.0 - damping_scale) * impulses.approach_damping
+    friction_dv = wp.vec3(velocity_change[0], velocity_change[1], velocity_change[2]) * m - normal
+    friction_dw = wp.vec3(velocity_change[3], velocity_change[4], velocity_change[5]) * inertia
+    # the friction impulses applied are scale * their sum, and their moment scale * its sum
+    along = wp.dot(friction_dv, impulses.friction) + wp.dot(
+        friction_dw, impulses.friction_moment
+    ) / (r * r)
+    norm = wp.dot(impulses.friction, impulses.friction) + wp.dot(
+        impulses.friction_moment, impulses.friction_moment
+    ) / (r * r)
+    scale = float(0.0)
+    if norm > 0.0:
+        scale = along / norm
+    return (
+        impulses.normal_power
+        - (1.0 - damping_scale) * impulses.approach_power
+        + scale * impulses.friction_power
+    )
+
+
 CONTACT_MAX_REGISTERS = 128
 """Registers a GPU thread of the sphere kernels may use. Unbounded they take 180-250, so that
 a multiprocessor (64 K registers) holds 8 warps of them; at 128 it holds 16, twice the threads
@@ -471,9 +513,10 @@ to hide latency with, for a few spills to the L1 cache."""
 
 
 @functools.cache
-def sphere_kernels(surface_flow: bool) -> tuple[wp.Kernel, wp.Kernel]:
+def sphere_kernels(surface_flow: bool, surface_work: bool) -> tuple[wp.Kernel, wp.Kernel]:
     """The sphere kernels, :func:`substep` and :func:`tick_substeps`, for a family that slides
-    the surface in plane (``surface_flow``) or not.
+    the surface in plane (``surface_flow``) or not, counting the surface's work on the spheres
+    (``surface_work``) or not.
 
     With ``surface_flow`` every contact's surface velocity adds the part of the column's
     in-plane velocity (``flow``, the data's ``surface_velocity`` [m/s], [num_envs, G(y),
@@ -481,6 +524,11 @@ def sphere_kernels(surface_flow: bool) -> tuple[wp.Kernel, wp.Kernel]:
     smooth surface takes the bilinear interpolation of the columns' velocities under the
     sphere's centre. The choice
     is compiled in: without it the kernels never read ``flow`` (it may be empty).
+
+    With ``surface_work`` each sphere's ``work`` [J], [num_envs, M], grows by the work its
+    column contacts did on it in a substep, where that is positive (:func:`column_work`): the
+    energy an actuator spends that cannot take energy back. Without it the kernels never read
+    ``work``.
     """
 
     @wp.func
@@ -490,6 +538,7 @@ def sphere_kernels(surface_flow: bool) -> tuple[wp.Kernel, wp.Kernel]:
         height_prev: wp.array3d(dtype=float),
         height: wp.array3d(dtype=float),
         flow: wp.array3d(dtype=wp.vec2),
+        work: wp.array2d(dtype=float),
         active: wp.array2d(dtype=wp.int32),
         position_in: wp.array2d(dtype=wp.vec3),
         velocity_in: wp.array2d(dtype=wp.vec3),
@@ -631,6 +680,8 @@ def sphere_kernels(surface_flow: bool) -> tuple[wp.Kernel, wp.Kernel]:
                     )
                 impulses = add_column_contact(model, impulses, v, w, n, overlap, surface_velocity)
         dvw = combined_velocity_change(model, impulses)
+        if wp.static(surface_work):
+            work[e, j] = work[e, j] + wp.max(column_work(model, impulses, dvw), 0.0)
         v = v + wp.vec3(dvw[0], dvw[1], dvw[2])
         w = w + wp.vec3(dvw[3], dvw[4], dvw[5])
 
@@ -647,6 +698,7 @@ def sphere_kernels(surface_flow: bool) -> tuple[wp.Kernel, wp.Kernel]:
         height_prev: wp.array3d(dtype=float),
         height: wp.array3d(dtype=float),
         flow: wp.array3d(dtype=wp.vec2),
+        work: wp.array2d(dtype=float),
         active: wp.array2d(dtype=wp.int32),
         position_in: wp.array2d(dtype=wp.vec3),
         velocity_in: wp.array2d(dtype=wp.vec3),
@@ -664,6 +716,7 @@ def sphere_kernels(surface_flow: bool) -> tuple[wp.Kernel, wp.Kernel]:
             height_prev,
             height,
             flow,
+            work,
             active,
             position_in,
             velocity_in,
@@ -681,6 +734,7 @@ def sphere_kernels(surface_flow: bool) -> tuple[wp.Kernel, wp.Kernel]:
         height_prev: wp.array3d(dtype=float),
         height: wp.array3d(dtype=float),
         flow: wp.array3d(dtype=wp.vec2),
+        work: wp.array2d(dtype=float),
         active: wp.array2d(dtype=wp.int32),
         position: wp.array2d(dtype=wp.vec3),
         velocity: wp.array2d(dtype=wp.vec3),
@@ -706,6 +760,7 @@ def sphere_kernels(surface_flow: bool) -> tuple[wp.Kernel, wp.Kernel]:
                     height_prev,
                     height,
                     flow,
+                    work,
                     active,
                     position,
                     velocity,

@@ -24,7 +24,7 @@ _KERNEL_MODULES = (physics, events, observations)
 _INT32_MAX = 2**31 - 1
 _RENAMED_ARRAYS = {"env_mask": "reset_mask"}
 """Earlier name -> name of the data arrays renamed since checkpoints were first written."""
-_ADDED_ARRAYS = {"approach_gap": -1.0, "sphere_approach_gap": -1.0}
+_ADDED_ARRAYS = {"approach_gap": -1.0, "sphere_approach_gap": -1.0, "surface_work": 0.0}
 """Data arrays added since checkpoints were first written -> the value they load as from a
 checkpoint that lacks them."""
 
@@ -94,7 +94,9 @@ class Simulator:
             surface_flow=self.actuator.moves_surface,
         )
         self.actuator.allocate(self.data, self.config, self.device)
-        self._sphere_kernels = physics.sphere_kernels(self.actuator.moves_surface)
+        self._sphere_kernels = physics.sphere_kernels(
+            self.actuator.moves_surface, self.config.count_surface_work
+        )
         self._views: dict[str, torch.Tensor] = {}
         self._torch_stream = None
         self._stream = None
@@ -237,6 +239,7 @@ class Simulator:
                 d.goal_cell,
                 d.sphere_active,
                 d.spawn_timer,
+                d.surface_work,
                 d.step_count,
                 d.reward,
                 d.terminated,
@@ -269,7 +272,13 @@ class Simulator:
         d, m = self.data, self.model
         current = (d.sphere_position, d.sphere_velocity, d.sphere_angular_velocity)
         scratch = (d.sphere_position_next, d.sphere_velocity_next, d.sphere_angular_velocity_next)
-        fields = (d.column_height_prev, d.column_height, d.surface_velocity, d.sphere_active)
+        fields = (
+            d.column_height_prev,
+            d.column_height,
+            d.surface_velocity,
+            d.surface_work,
+            d.sphere_active,
+        )
         substep, tick_substeps = self._sphere_kernels
         if self.fuse_substeps:
             wp.launch(tick_substeps, dim=self.num_envs, inputs=[m, *fields, *current, *scratch])

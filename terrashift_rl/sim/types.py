@@ -320,6 +320,9 @@ class Data:
         """1 where the sphere is in play, shape [num_envs, M]."""
         self.spawn_timer = zeros((n, m), wp.int32)
         """Ticks until an inactive sphere (re)spawns; -1 once resolved for good, [num_envs, M]."""
+        self.surface_work = zeros((n, m))
+        """Positive work the surface has done on the sphere in each slot since the episode
+        began [J], [num_envs, M]; counted only with ``count_surface_work``."""
         self.goal_distance = zeros((n, m))
         """Distance of each active sphere to its goal at the last tick [m], [num_envs, M]."""
         self.approach_gap = wp.full((n, k), -1.0, dtype=float, device=device)

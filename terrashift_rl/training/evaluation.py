@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -104,7 +105,10 @@ def evaluate(
         ``goals_per_episode``; ``out_of_bounds_per_episode``; ``mean_reward_per_decision``, the
         team reward averaged over each environment's decisions of its episode, then over the
         environments; ``mean_episode_length`` in decisions; ``terminated_fraction``, the share of
-        episodes that ended with every sphere resolved rather than at the step limit.
+        episodes that ended with every sphere resolved rather than at the step limit;
+        ``surface_work_per_goal``, the work the surface did on the spheres [J] over the goals
+        reached (the actuator's energy per sphere delivered; 0 unless the scene has
+        ``count_surface_work``, NaN without goals).
 
     Raises:
         ValueError: if ``env`` is not a TerraShift environment, is not batched, or
@@ -126,6 +130,7 @@ def evaluate(
     goals = torch.zeros(num_envs, dtype=torch.long, device=device)
     lost = torch.zeros(num_envs, dtype=torch.long, device=device)
     terminated = torch.zeros(num_envs, dtype=torch.bool, device=device)
+    work = torch.zeros(num_envs, dtype=torch.float64, device=device)
 
     bar = tqdm(total=num_envs, desc="evaluate", unit="episode", disable=not progress)
     with torch.no_grad():
@@ -142,6 +147,8 @@ def evaluate(
             finished = running & done
             goals = torch.where(finished, nxt.get("episode_goals").reshape(num_envs), goals)
             lost = torch.where(finished, nxt.get("episode_out_of_bounds").reshape(num_envs), lost)
+            spent = nxt.get("episode_surface_work").reshape(num_envs).double()
+            work = torch.where(finished, spent, work)
             terminated |= finished & nxt.get("terminated").reshape(num_envs)
             running &= ~done
             left = int(running.sum())
@@ -166,6 +173,7 @@ def evaluate(
         "mean_reward_per_decision": float((reward_sum / length.double()).mean()),
         "mean_episode_length": float(length.double().mean()),
         "terminated_fraction": float(terminated.double().mean()),
+        "surface_work_per_goal": float(work.sum()) / total_goals if total_goals else math.nan,
     }
 
 

@@ -133,7 +133,7 @@ def test_sphere_put_on_a_sliding_surface_slips_then_rolls_at_two_sevenths(shape,
     stays within one top (the seams between flush tops are edges that bump a passing sphere);
     the smooth surface is one plane."""
     mu = 0.1
-    sc = flow_scene(shape, friction=mu, linear_damping=0.0)
+    sc = flow_scene(shape, friction=mu, linear_damping=0.0, count_surface_work=True)
     cfg = sc.config
     x0 = 0.0  # the centre of a column
     sc.place_spheres(torch.tensor([[x0, x0, resting_height(cfg)]]))
@@ -147,6 +147,8 @@ def test_sphere_put_on_a_sliding_surface_slips_then_rolls_at_two_sevenths(shape,
         speeds.append(v[0].item())
         energies.append(energy(sc))
         works.append(u * cfg.sphere_mass * v[0].item())
+        counted = sc.sim.view("surface_work")[0, 0].item()
+        assert counted == pytest.approx(works[-1], rel=0.01, abs=1e-6)
     times, speeds = np.array(times), np.array(speeds)
     slipping = times < 0.9 * slip_time
     acceleration = np.polyfit(times[slipping], speeds[slipping], 1)[0]
@@ -235,3 +237,27 @@ def test_extreme_actions_keep_every_family_finite(family, shape):
             assert speed.max() <= cfg.max_surface_speed + 1e-5
             assert speed.max() > 0.0
     assert sim.view("sphere_active").any()
+
+
+def test_a_lifted_sphere_costs_the_columns_at_least_its_rise():
+    """Box columns under a resting sphere rise 5 cm in one tick and hold: the positive work
+    the columns did is at least the potential energy of the throw's peak over the start
+    (the rest went into the contact's dashpot); columns at rest do none."""
+    cfg = TerraShiftConfig(column_shape="box", num_objects=1, num_goals=1, count_surface_work=True)
+    sc = ScriptedScene(cfg)
+    sc.place_spheres(torch.tensor([[0.0, 0.0, resting_height(cfg)]]))
+    sc.step(30)
+    assert sc.sim.view("surface_work").item() < 1e-6
+    start = sc.sphere_position[0, 0, 2].item()
+    sc.set_column_heights(0.05)
+    peak = start
+    for _ in range(60):
+        sc.step()
+        peak = max(peak, sc.sphere_position[0, 0, 2].item())
+    work = sc.sim.view("surface_work").item()
+    assert peak > start + 0.1  # thrown well above the raised tops
+    assert (
+        cfg.sphere_mass * cfg.gravity * (peak - start)
+        <= work
+        < 3 * cfg.sphere_mass * cfg.gravity * (peak - start)
+    )
