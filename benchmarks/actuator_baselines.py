@@ -3,8 +3,9 @@
 For each family and column shape, :func:`~terrashift_rl.training.evaluation.evaluate_baselines`
 plays one evaluation-mode episode (no respawn) per environment for each policy and seed;
 the table gives the goal fraction (mean +- sd over seeds), the mean episode length in
-decisions (the latency: an episode ends once every sphere is resolved) and the share of
-resolved spheres that reached their goal. Prints a table and writes JSON (after every row).
+decisions (the latency: an episode ends once every sphere is resolved), the share of
+resolved spheres that reached their goal and the positive work the surface did on the
+spheres per goal [J] (``count_surface_work``). Prints a table and writes JSON (after every row).
 
     python benchmarks/actuator_baselines.py --device cpu --num-envs 16 --seeds 0 1 2
     python benchmarks/actuator_baselines.py --device cuda --num-envs 1024 --shapes box
@@ -23,7 +24,7 @@ from common import device_name, write_results
 from terrashift_rl.sim import ACTUATORS, COLUMN_SHAPES, TerraShiftConfig
 from terrashift_rl.training.evaluation import evaluate_baselines
 
-METRICS = ("goal_fraction", "mean_episode_length", "success_rate")
+METRICS = ("goal_fraction", "mean_episode_length", "success_rate", "surface_work_per_goal")
 
 
 def main() -> None:
@@ -48,10 +49,15 @@ def main() -> None:
         "rows": [],
     }
     print(f"Baselines per actuator family, {args.num_envs} episodes x seeds {args.seeds}")
-    print(f"{'actuator':>12} {'shape':>9} {'policy':>9} | goal fraction | length | success")
+    print(
+        f"{'actuator':>12} {'shape':>9} {'policy':>9} | goal fraction | length | success | "
+        "work per goal [J]"
+    )
     for actuator in args.actuators:
         for shape in args.shapes:
-            config = TerraShiftConfig.preset("pretrain", actuator=actuator, column_shape=shape)
+            config = TerraShiftConfig.preset(
+                "pretrain", actuator=actuator, column_shape=shape, count_surface_work=True
+            )
             per_seed = [
                 evaluate_baselines(config, num_envs=args.num_envs, device=device, seed=seed)
                 for seed in args.seeds
@@ -67,7 +73,8 @@ def main() -> None:
                 print(
                     f"{actuator:>12} {shape:>9} {policy:>9} | "
                     f"{row['goal_fraction']:.3f} +- {row['goal_fraction_sd']:.3f} | "
-                    f"{row['mean_episode_length']:6.1f} | {row['success_rate']:.3f}"
+                    f"{row['mean_episode_length']:6.1f} | {row['success_rate']:.3f}   | "
+                    f"{row['surface_work_per_goal']:.3f}"
                 )
     print(f"wrote {out}")
 
