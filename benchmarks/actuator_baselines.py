@@ -14,6 +14,7 @@ spheres per goal [J] (``count_surface_work``). Prints a table and writes JSON (a
 from __future__ import annotations
 
 import argparse
+import math
 import statistics
 from datetime import date
 from pathlib import Path
@@ -25,6 +26,7 @@ from terrashift_rl.sim import ACTUATORS, COLUMN_SHAPES, TerraShiftConfig
 from terrashift_rl.training.evaluation import evaluate_baselines
 
 METRICS = ("goal_fraction", "mean_episode_length", "success_rate", "surface_work_per_goal")
+"""Per policy, mean and sd over the seeds; the work per goal is NaN for a seed without goals."""
 
 
 def main() -> None:
@@ -62,6 +64,11 @@ def main() -> None:
                 evaluate_baselines(config, num_envs=args.num_envs, device=device, seed=seed)
                 for seed in args.seeds
             ]
+            for scores in per_seed:
+                for metrics in scores.values():
+                    goals = metrics["goals_per_episode"]
+                    work = metrics["surface_work_per_episode"]
+                    metrics["surface_work_per_goal"] = work / goals if goals else math.nan
             for policy in per_seed[0]:
                 row = {"actuator": actuator, "column_shape": shape, "policy": policy}
                 for metric in METRICS:

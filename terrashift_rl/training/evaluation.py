@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import torch
@@ -106,9 +105,9 @@ def evaluate(
         team reward averaged over each environment's decisions of its episode, then over the
         environments; ``mean_episode_length`` in decisions; ``terminated_fraction``, the share of
         episodes that ended with every sphere resolved rather than at the step limit;
-        ``surface_work_per_goal``, the work the surface did on the spheres [J] over the goals
-        reached (the actuator's energy per sphere delivered; 0 unless the scene has
-        ``count_surface_work``, NaN without goals).
+        ``surface_work_per_episode``, the work the surface did on the spheres [J] (0 unless
+        the scene has ``count_surface_work``; over ``goals_per_episode``, the actuator's
+        energy per sphere delivered).
 
     Raises:
         ValueError: if ``env`` is not a TerraShift environment, is not batched, or
@@ -173,7 +172,7 @@ def evaluate(
         "mean_reward_per_decision": float((reward_sum / length.double()).mean()),
         "mean_episode_length": float(length.double().mean()),
         "terminated_fraction": float(terminated.double().mean()),
-        "surface_work_per_goal": float(work.sum()) / total_goals if total_goals else math.nan,
+        "surface_work_per_episode": float(work.sum()) / num_envs,
     }
 
 
