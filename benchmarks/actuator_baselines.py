@@ -13,14 +13,12 @@ spheres per goal [J] (``count_surface_work``). Prints a table and writes JSON (a
 
 from __future__ import annotations
 
-import argparse
 import math
 import statistics
-from datetime import date
 from pathlib import Path
 
 import torch
-from common import device_name, write_results
+from common import benchmark_parser, run_header, table_header, table_row, write_results
 
 from terrashift_rl.sim import ACTUATORS, COLUMN_SHAPES, TerraShiftConfig
 from terrashift_rl.training.evaluation import evaluate_baselines
@@ -30,8 +28,7 @@ METRICS = ("goal_fraction", "mean_episode_length", "success_rate", "surface_work
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser = benchmark_parser(__doc__, device=True)
     parser.add_argument("--num-envs", type=int, default=16, help="episodes per policy and seed")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--actuators", nargs="+", default=sorted(ACTUATORS), choices=ACTUATORS)
@@ -43,18 +40,15 @@ def main() -> None:
     out = args.out or Path(__file__).parent / "results" / f"actuator_baselines_{device.type}.json"
     payload = {
         "benchmark": "actuator_baselines",
-        "date": date.today().isoformat(),
-        "device": device_name(device),
+        **run_header(device),
         "scene": "pretrain, evaluation mode (respawn off, shaping off)",
         "episodes_per_seed": args.num_envs,
         "seeds": args.seeds,
         "rows": [],
     }
     print(f"Baselines per actuator family, {args.num_envs} episodes x seeds {args.seeds}")
-    print(
-        f"{'actuator':>12} {'shape':>9} {'policy':>9} | goal fraction | length | success | "
-        "work per goal [J]"
-    )
+    print(table_header(["actuator", "columns", "policy", "goal fraction", "length", "success",
+                        "work per goal [J]"]))  # fmt: skip
     for actuator in args.actuators:
         for shape in args.shapes:
             config = TerraShiftConfig.preset(
@@ -78,10 +72,17 @@ def main() -> None:
                 payload["rows"].append(row)
                 write_results(out, payload)
                 print(
-                    f"{actuator:>12} {shape:>9} {policy:>9} | "
-                    f"{row['goal_fraction']:.3f} +- {row['goal_fraction_sd']:.3f} | "
-                    f"{row['mean_episode_length']:6.1f} | {row['success_rate']:.3f}   | "
-                    f"{row['surface_work_per_goal']:.3f}"
+                    table_row(
+                        [
+                            actuator,
+                            shape,
+                            policy,
+                            f"{row['goal_fraction']:.3f} ± {row['goal_fraction_sd']:.3f}",
+                            f"{row['mean_episode_length']:.1f}",
+                            f"{row['success_rate']:.3f}",
+                            f"{row['surface_work_per_goal']:.3f}",
+                        ]
+                    )
                 )
     print(f"wrote {out}")
 

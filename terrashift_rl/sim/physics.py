@@ -4,7 +4,9 @@ Contact model (docs/physics.md has the derivation and the stable ranges):
 
 * Normal: a penalty spring-dashpot, ``f_n = max(0, k * overlap - c * v_n)``, with ``c`` chosen
   so a collision ends with the configured restitution. Columns are kinematic: their vertical
-  velocity enters ``v_n``, so a rising column lifts or throws a sphere.
+  velocity enters ``v_n``, so a rising column lifts or throws a sphere. Where the actuator
+  family slides the surface in plane, the sliding's part tangent to a contact enters its slip,
+  and friction drags the sphere along (:func:`sphere_kernels`).
 * Tangential: Coulomb friction as a velocity-level impulse at the contact point. It removes the
   slip of the contact point up to ``mu * f_n * dt``, acting on both linear and angular velocity,
   so a sphere that does not slip *rolls* (5/7 g sin(theta) down a slope).
