@@ -27,6 +27,13 @@ METRICS = ("goal_fraction", "mean_episode_length", "success_rate", "surface_work
 """Per policy, mean and sd over the seeds; the work per goal is NaN for a seed without goals."""
 
 
+def mean_and_sd(values: list[float]) -> tuple[float, float]:
+    """Mean and sample standard deviation over the seeds (0 for one seed); NaN if any is."""
+    if any(math.isnan(value) for value in values):
+        return math.nan, math.nan
+    return statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else 0.0
+
+
 def main() -> None:
     parser = benchmark_parser(__doc__, device=True)
     parser.add_argument("--num-envs", type=int, default=16, help="episodes per policy and seed")
@@ -67,8 +74,7 @@ def main() -> None:
                 row = {"actuator": actuator, "column_shape": shape, "policy": policy}
                 for metric in METRICS:
                     values = [scores[policy][metric] for scores in per_seed]
-                    row[metric] = statistics.fmean(values)
-                    row[f"{metric}_sd"] = statistics.stdev(values) if len(values) > 1 else 0.0
+                    row[metric], row[f"{metric}_sd"] = mean_and_sd(values)
                 payload["rows"].append(row)
                 write_results(out, payload)
                 print(
