@@ -17,6 +17,7 @@ the patches do to the surface: its kernel evaluates the envelopes at the columns
 
 from __future__ import annotations
 
+import functools
 from typing import TYPE_CHECKING, ClassVar
 
 import warp as wp
@@ -342,20 +343,56 @@ def limited(velocity: wp.vec2, limit: float) -> wp.vec2:
     return velocity
 
 
+@functools.cache
+def sliding_kernel(patch_velocity: wp.Function) -> wp.Kernel:
+    """The kernel that sums ``patch_velocity(model, amplitude, frame, envelope)``, one patch's
+    in-plane surface velocity [m/s] at a column (``envelope``: :func:`envelope` there, ``frame``:
+    :func:`envelope_frame`), over the patches at every column and clips it to ``max_speed``.
+    Launched with (model, reset_mask, use_mask, max_speed, position, amplitude, frame,
+    surface_velocity) over [num_envs, G(y), G(x)]; with ``use_mask`` only where ``reset_mask``
+    is set."""
+
+    @wp.kernel(module="unique")
+    def compute_surface_velocity(
+        model: Model,
+        reset_mask: wp.array(dtype=wp.bool),
+        use_mask: int,
+        max_speed: float,
+        position: wp.array2d(dtype=wp.vec2),
+        amplitude: wp.array2d(dtype=float),
+        frame: wp.array2d(dtype=wp.vec4),
+        surface_velocity: wp.array3d(dtype=wp.vec2),
+    ):
+        e, iy, ix = wp.tid()
+        if use_mask != 0 and not reset_mask[e]:
+            return
+        total = wp.vec2(0.0)
+        for k in range(model.num_agents):
+            weight = envelope(model, position, frame, e, k, ix, iy)
+            total += wp.static(patch_velocity)(model, amplitude[e, k], frame[e, k], weight)
+        surface_velocity[e, iy, ix] = limited(total, max_speed)
+
+    return compute_surface_velocity
+
+
 class SlidingPatchActuator(PatchActuator):
-    """A patch family that slides the surface in plane and leaves the columns at rest: its
-    ``flow_kernel`` writes every column's surface velocity from the patches, launched with
-    (model, reset_mask, use_mask, max_surface_speed, agent position, amplitude, frame,
-    surface_velocity) over [num_envs, G(y), G(x)]."""
+    """A patch family that slides the surface in plane and leaves the columns at rest; its
+    ``patch_velocity``, a Warp function, gives one patch's surface velocity at a column
+    (:func:`sliding_kernel`)."""
 
     moves_columns = False
     moves_surface = True
-    flow_kernel: ClassVar[wp.Kernel]
+    patch_velocity: ClassVar[wp.Function]
+
+    def allocate(self, data: Data, config: TerraShiftConfig, device: wp.context.Device) -> None:
+        super().allocate(data, config, device)
+        # built for the family, so loaded here: before a step is captured as a CUDA graph
+        wp.load_module(sliding_kernel(self.patch_velocity).module, device=device)
 
     def launch_surface(self, sim: Simulator, *, reset: bool) -> None:
         d, g = sim.data, sim.config.grid_size
         wp.launch(
-            self.flow_kernel,
+            sliding_kernel(self.patch_velocity),
             dim=(sim.num_envs, g, g),
             inputs=[
                 sim.model,

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 
 import warp as wp
 
-from terrashift_rl.sim.actuators.patches import SlidingPatchActuator, envelope, limited
+from terrashift_rl.sim.actuators.patches import SlidingPatchActuator
 from terrashift_rl.sim.types import Model
 
 if TYPE_CHECKING:
@@ -24,35 +24,18 @@ if TYPE_CHECKING:
 wp.set_module_options({"enable_backward": False})  # nothing differentiates through it
 
 
-@wp.kernel
-def compute_spin(
-    model: Model,
-    reset_mask: wp.array(dtype=wp.bool),
-    use_mask: int,
-    max_speed: float,
-    position: wp.array2d(dtype=wp.vec2),
-    amplitude: wp.array2d(dtype=float),
-    frame: wp.array2d(dtype=wp.vec4),
-    surface_velocity: wp.array3d(dtype=wp.vec2),
-):
-    """Sums the rotors' surface velocities at every column. Launch dim: [num_envs, G, G] as
-    (env, iy, ix)."""
-    e, iy, ix = wp.tid()
-    if use_mask != 0 and not reset_mask[e]:
-        return
-    total = wp.vec2(0.0)
-    for k in range(model.num_agents):
-        w = envelope(model, position, frame, e, k, ix, iy)
-        # z x (dx, dy) = (-dy, dx), the offset from cells to metres
-        total += (amplitude[e, k] * w[0] * model.cell_size) * wp.vec2(-w[2], w[1])
-    surface_velocity[e, iy, ix] = limited(total, max_speed)
+@wp.func
+def spin_velocity(model: Model, amplitude: float, frame: wp.vec4, envelope: wp.vec3) -> wp.vec2:
+    """One rotor's surface velocity at a column: its spin rate [rad/s] times its envelope
+    times z x (the offset from its centre to the column, in metres) = (-dy, dx)."""
+    return (amplitude * envelope[0] * model.cell_size) * wp.vec2(-envelope[2], envelope[1])
 
 
 class Rotors(SlidingPatchActuator):
     """Spinning Gaussian patches of surface (rotor tiles)."""
 
     name = "rotors"
-    flow_kernel = compute_spin
+    patch_velocity = spin_velocity
 
     def amplitude_limits(self, config: TerraShiftConfig) -> tuple[float, float, float]:
         high = config.max_rotor_speed

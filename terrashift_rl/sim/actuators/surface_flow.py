@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import warp as wp
 
-from terrashift_rl.sim.actuators.patches import SlidingPatchActuator, envelope, limited
+from terrashift_rl.sim.actuators.patches import SlidingPatchActuator
 from terrashift_rl.sim.types import Model
 
 if TYPE_CHECKING:
@@ -23,34 +23,18 @@ if TYPE_CHECKING:
 wp.set_module_options({"enable_backward": False})  # nothing differentiates through it
 
 
-@wp.kernel
-def compute_flow(
-    model: Model,
-    reset_mask: wp.array(dtype=wp.bool),
-    use_mask: int,
-    max_speed: float,
-    position: wp.array2d(dtype=wp.vec2),
-    amplitude: wp.array2d(dtype=float),
-    frame: wp.array2d(dtype=wp.vec4),
-    surface_velocity: wp.array3d(dtype=wp.vec2),
-):
-    """Sums the patches' flows at every column. Launch dim: [num_envs, G, G] as (env, iy, ix)."""
-    e, iy, ix = wp.tid()
-    if use_mask != 0 and not reset_mask[e]:
-        return
-    total = wp.vec2(0.0)
-    for k in range(model.num_agents):
-        f = frame[e, k]
-        weight = amplitude[e, k] * envelope(model, position, frame, e, k, ix, iy)[0]
-        total += weight * wp.vec2(f[0], f[1])
-    surface_velocity[e, iy, ix] = limited(total, max_speed)
+@wp.func
+def flow_velocity(model: Model, amplitude: float, frame: wp.vec4, envelope: wp.vec3) -> wp.vec2:
+    """One patch's surface velocity at a column: its amplitude [m/s] times its envelope, along
+    its orientation (cos theta, sin theta)."""
+    return (amplitude * envelope[0]) * wp.vec2(frame[0], frame[1])
 
 
 class SurfaceFlow(SlidingPatchActuator):
     """Gaussian patches of in-plane surface velocity along each patch's orientation."""
 
     name = "surface_flow"
-    flow_kernel = compute_flow
+    patch_velocity = flow_velocity
 
     def amplitude_limits(self, config: TerraShiftConfig) -> tuple[float, float, float]:
         high = config.max_surface_speed
