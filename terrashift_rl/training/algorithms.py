@@ -26,8 +26,9 @@ loss's torchrl :class:`~torchrl.objectives.value.MultiAgentGAE`, which broadcast
 flags over the agents and computes per-agent advantages and returns. The settings mean the same
 for every algorithm (value normalisation, advantages standardised once per collected batch,
 value clipping, the coefficients); ``baseline_coeff`` and the teacher are MA-POCA's alone.
-MA-POCA standardises the advantages over every agent at once, MultiAgentGAE each agent's over its own (torchrl's multi-agent
-convention; the agents share their networks, so the two differ little).
+MA-POCA standardises the advantages over every agent at once, MultiAgentGAE each agent's over its
+own (torchrl's multi-agent convention; the agents share their networks, so the two differ
+little).
 
 Two diagnostics differ in kind: torchrl's ``kl_approx`` is the mean log-ratio log π_old - log π
 (unbiased, but a mini-batch's may be negative), MA-POCA's Schulman's non-negative k3 estimate of

@@ -92,6 +92,10 @@ def size_for_the_machine(
     source = next((key for key in model_from if isinstance(OmegaConf.select(cfg, key), str)), None)
     if not sizing and source is None:
         return cfg
+    defaults = OmegaConf.select(cfg, defaults_key)
+    if isinstance(defaults, ListConfig):
+        defaults = OmegaConf.to_container(defaults)
+    check_value(defaults_key, defaults, list[str], OVERRIDES)
     hydra_config = HydraConfig.get()
     given = list(hydra_config.overrides.task)
     pinned, changed = [], []
@@ -103,10 +107,6 @@ def size_for_the_machine(
         changed = [texts[text] for text in pinned if cfg.model[texts[text]] != model[texts[text]]]
     sized = []
     if sizing:
-        defaults = OmegaConf.select(cfg, defaults_key)
-        if isinstance(defaults, ListConfig):
-            defaults = OmegaConf.to_container(defaults)
-        check_value(defaults_key, defaults, list[str], OVERRIDES)
         try:
             sized = cpu_overrides(defaults, [*pinned, *given])
         except OverrideParseException as error:

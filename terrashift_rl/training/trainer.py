@@ -332,13 +332,13 @@ class OnPolicyTrainer:
         data-parallel run each rank takes its own environments and random states from it; a rank
         the checkpoint's run did not have (it had fewer processes) keeps its freshly seeded ones
         and starts new episodes."""
-        algo = _algo_of(state)
+        algo = state["algo"]
         if algo != self.config.algo:
             raise ValueError(
-                f"the checkpoint was trained with train.algo={algo}; resume with the same setting"
+                f"the checkpoint was trained with algo={algo}; resume with the same setting"
             )
         self.networks.load_state_dict(state["networks"])
-        self.algorithm.networks.load_state_dict(state.get("algorithm_networks", {}))
+        self.algorithm.networks.load_state_dict(state["algorithm_networks"])
         self.optimizer.load_state_dict(state["optimizer"])
         normalizer = self.algorithm.value_normalizer
         if (normalizer is None) != (state.get("value_normalizer") is None):
@@ -381,10 +381,11 @@ class OnPolicyTrainer:
         algorithm's own networks where the checkpoint was trained with the same algorithm;
         otherwise these keep their fresh initialisation. The optimiser, the schedules and the
         return statistics start afresh. ``state`` is a :meth:`weights_state_dict` or a
-        :meth:`state_dict`, also one written before ``algo`` existed (MA-POCA's)."""
+        :meth:`state_dict` (a checkpoint of an earlier layout converted by
+        :func:`~terrashift_rl.training.checkpoint.upgrade`)."""
         self.networks.load_state_dict(state["networks"])
-        if _algo_of(state) == self.config.algo:
-            self.algorithm.networks.load_state_dict(state.get("algorithm_networks", {}))
+        if state["algo"] == self.config.algo:
+            self.algorithm.networks.load_state_dict(state["algorithm_networks"])
 
     # --- helpers ---------------------------------------------------------------------------
     def _adapt_learning_rate(self, kl: torch.Tensor) -> None:
@@ -465,14 +466,6 @@ class OnPolicyTrainer:
 
 MAPOCATrainer = OnPolicyTrainer
 """The trainer's name from when MA-POCA was its only algorithm."""
-
-
-def _algo_of(state: dict[str, Any]) -> str:
-    """The algorithm a checkpoint was trained with; checkpoints from before ``train.algo``
-    existed are MA-POCA's."""
-    if "algo" in state:
-        return state["algo"]
-    return state.get("train_config", {}).get("algo", "mapoca")
 
 
 def episode_metrics(data: TensorDictBase) -> dict[str, float]:

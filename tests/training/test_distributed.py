@@ -12,9 +12,9 @@ import pytest
 import torch
 import torch.multiprocessing as mp
 from hydra import compose, initialize_config_dir
+from terrashift_rl.training.run import register_config_schemas, run_training
 
 from terrashift_rl.training import OnPolicyTrainer, distributed, load_checkpoint
-from terrashift_rl.training.run import register_config_schemas, run_training
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "recipes" / "configs"
