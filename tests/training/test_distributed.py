@@ -14,7 +14,6 @@ import torch
 import torch.multiprocessing as mp
 from hydra import compose, initialize_config_dir
 
-
 from terrashift_rl.training import OnPolicyTrainer, distributed, load_checkpoint
 
 ROOT = Path(__file__).resolve().parents[2]
