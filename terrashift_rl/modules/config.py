@@ -100,12 +100,6 @@ class TerraShiftModelConfig:
     """Hidden width of the shared policy MLP (d -> 192 -> 192)."""
     min_concentration: float = setting(1.01, above(0))
     """Lower bound of both Beta concentrations; above 1 the density is unimodal and finite."""
-    policy_output_gain: float = setting(1.0, at_least(0))
-    """Factor on the initial weights and biases of the policy's two output layers (PyTorch's
-    default initialisation at 1). Near 0, every agent starts from the same action distribution,
-    centred on the zero action whatever it observes; 0.01 is the setting Andrychowicz et al.
-    (2021, "What matters in on-policy reinforcement learning?") recommend; it changes only the
-    initial weights, so a run may resume with another value."""
     distribution: str = setting("beta", one_of(*DISTRIBUTIONS))
     """The policy's action distribution: ``beta`` (the paper's: a Beta per action dimension on
     ``[-action_range, action_range]``, concentrations from the network) or ``normal`` (a
@@ -123,8 +117,8 @@ class TerraShiftModelConfig:
     middle of the range. It shifts the initial biases of the policy's output layers, so it
     holds exactly where the rest of those layers reads zero: a Beta keeps its smaller
     concentration at the centred start's (``min_concentration + log 2``) and raises the other;
-    a Gaussian's mean moves by it. Like ``policy_output_gain``, it changes only initial
-    weights."""
+    a Gaussian's mean moves by it. It changes only initial weights, so a run may resume with
+    another value."""
     critic_hidden_dim: int = setting(128, at_least(1))
     """Hidden width of the value and baseline MLPs."""
     action_range: float = setting(1.0, at_least(1))

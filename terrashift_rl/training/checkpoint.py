@@ -47,8 +47,11 @@ RESUME_KEYS = (*WEIGHTS_KEYS, "optimizer", "train_config", "simulator", "carry")
 EXECUTION_SETTINGS = ("bf16", "tf32", "compile", "cuda_graphs", "deterministic")
 """Training settings of how the networks execute, not what they learn: a run may resume with
 other values."""
-INITIALISATION_SETTINGS = ("policy_output_gain", "initial_action_mean")
+INITIALISATION_SETTINGS = ("initial_action_mean",)
 """Model settings that only set the initial weights, which a checkpoint's weights replace."""
+RETIRED_SETTINGS = {"model_config": ("policy_output_gain",)}
+"""Settings that earlier checkpoints hold and that are no longer settings (they only set
+initial weights, so a checkpoint's weights do not depend on them)."""
 
 _TENSORDICT = "__tensordict__"
 """Marks a tensordict stored as plain tensors: ``{_TENSORDICT: {batch_size, entries}}``."""
@@ -144,6 +147,7 @@ def upgrade(state: dict[str, Any]) -> dict[str, Any]:
       loss settings move to ``train_config["loss"]``, those renamed since (``value_clip_*``)
       take their names now, and a setting the checkpoint predates takes its default then.
     - ``best``: absent before ``best.pt`` existed, an empty window.
+    - :data:`RETIRED_SETTINGS` are dropped.
 
     Example:
         >>> old = {"networks": {}, "env_config": {}, "train_config": {"value_clip_start": 0.2}}
@@ -163,6 +167,9 @@ def upgrade(state: dict[str, Any]) -> dict[str, Any]:
         state["env_config"] = {"action_mode": "delta", **state["env_config"]}
     if "optimizer" in state:
         state.setdefault("best", {"reward": -math.inf, "recent": []})
+    for name, retired in RETIRED_SETTINGS.items():
+        if name in state:
+            state[name] = {key: value for key, value in state[name].items() if key not in retired}
     if train is not None and "loss" not in train:
         flat = {_RENAMED.get(key, key): value for key, value in train.items() if key != "algo"}
         defaults = dataclasses.asdict(TrainConfig(loss=ALGORITHMS[algo]()))

@@ -240,7 +240,7 @@ def test_smoke_train_resume_and_finetune(tmp_path):
         "run.pretrained=b/checkpoints/last.pt",
         "env.grid_size=10",
         "env.num_agents=6",
-        "model.policy_output_gain=0.5",  # initial weights, which the pretrained ones replace
+        "model.initial_action_mean=[0,0,0,-0.1,0,0]",  # initial weights, replaced by pretrained
         "logger=csv",
         "hydra.run.dir=d",
         cwd=tmp_path,
@@ -582,12 +582,9 @@ def configs_of(cfg) -> dict:
 
 def test_resume_ignores_settings_that_only_set_the_initial_weights():
     configs = configs_of(compose_config("smoke"))
-    for change in (
-        {"policy_output_gain": 0.01},
-        {"initial_action_mean": [0.0, 0.0, 0.0, -0.1, 0.0, 0.0]},
-    ):
-        saved = {**configs, "model_config": {**configs["model_config"], **change}}
-        check_resumable(saved, configs, path="last.pt")
+    change = {"initial_action_mean": [0.0, 0.0, 0.0, -0.1, 0.0, 0.0]}
+    saved = {**configs, "model_config": {**configs["model_config"], **change}}
+    check_resumable(saved, configs, path="last.pt")
     wider = {**configs, "model_config": {**configs["model_config"], "embed_dim": 64}}
     with pytest.raises(ValueError, match="add model.embed_dim=64 to continue"):
         check_resumable(wider, configs, path="last.pt")
