@@ -358,10 +358,6 @@ def _values(cfg: DictConfig) -> dict[str, Any]:
     return OmegaConf.to_container(cfg, resolve=True)
 
 
-def _defaults(config: Any) -> dict[str, Any]:
-    return dataclasses.asdict(config)
-
-
 def register_config_schemas() -> None:
     """Gives Hydra the defaults of every group, as plain values: the group files name the fields
     they change, the settings classes supply the others, so every field can be set as
@@ -371,18 +367,20 @@ def register_config_schemas() -> None:
     ``algo/<algo>_schema`` (placed at ``loss``, with ``loss.algo``), ``logger/schema``,
     ``run_schema`` (placed at ``run``) and ``evaluate_schema``."""
     store = ConfigStore.instance()
-    store.store(group="env", name="schema", node=_defaults(TerraShiftConfig()))
-    store.store(group="model", name="schema", node=_defaults(TerraShiftModelConfig()))
-    store.store(group="model", name="schema_small", node=_defaults(TerraShiftModelConfig.small()))
-    train = _defaults(TrainConfig())
+    store.store(group="env", name="schema", node=dataclasses.asdict(TerraShiftConfig()))
+    store.store(group="model", name="schema", node=dataclasses.asdict(TerraShiftModelConfig()))
+    store.store(
+        group="model", name="schema_small", node=dataclasses.asdict(TerraShiftModelConfig.small())
+    )
+    train = dataclasses.asdict(TrainConfig())
     del train["loss"]
     store.store(group="train", name="schema", node=train)
     for algo, config in ALGORITHMS.items():
-        node = {"algo": algo, **_defaults(config())}
+        node = {"algo": algo, **dataclasses.asdict(config())}
         store.store(group="algo", name=f"{algo}_schema", node=node, package="loss")
-    store.store(group="logger", name="schema", node=_defaults(LoggerConfig()))
-    store.store(name="run_schema", node=_defaults(RunConfig()), package="run")
-    evaluate = _defaults(EvaluateConfig())
+    store.store(group="logger", name="schema", node=dataclasses.asdict(LoggerConfig()))
+    store.store(name="run_schema", node=dataclasses.asdict(RunConfig()), package="run")
+    evaluate = dataclasses.asdict(EvaluateConfig())
     del evaluate["env"]
     store.store(name="evaluate_schema", node=evaluate)
 
