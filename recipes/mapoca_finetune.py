@@ -18,8 +18,10 @@ from __future__ import annotations
 import sys
 
 import hydra
-from mapoca_pretrain import hydra_overrides_of_other_ranks, launch  # this file's folder
+from mapoca_pretrain import launch  # the pretraining recipe, in this file's folder
 from omegaconf import DictConfig
+
+from terrashift_rl.training.launch import hydra_overrides_of_other_ranks
 
 
 @hydra.main(version_base=None, config_path="configs", config_name="mapoca_finetune")
