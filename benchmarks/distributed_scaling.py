@@ -37,7 +37,7 @@ import torch
 from common import benchmark_parser, device_name, read_series, run_header, write_results
 from hydra import compose, initialize_config_dir
 
-from terrashift_rl.training.run import register_config_schemas
+from terrashift_rl.training.settings import register_config_schemas
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ROOT / "recipes" / "mapoca_pretrain.py"

@@ -24,72 +24,44 @@ from torchrl.envs.utils import ExplorationType
 
 from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
-from terrashift_rl.training import load_checkpoint, make_training_env
+from terrashift_rl.training import make_training_env
+from terrashift_rl.training.checkpoint import WEIGHTS_KEYS, check_action_mode, load_checkpoint
 from terrashift_rl.training.evaluation import (
     actor_policy,
     evaluate,
     evaluate_baselines,
     evaluation_scene,
 )
-from terrashift_rl.training.run import (
-    BOOLEAN,
-    OVERRIDES,
-    POSITIVE,
-    TEXT,
-    WEIGHTS_KEYS,
-    check_action_mode,
-    check_settings,
-    integer,
-    one_of,
-    or_null,
-    register_config_schemas,
-    resolve_device,
-    size_for_the_machine,
-    structured,
-)
+from terrashift_rl.training.launch import resolve_device, size_for_the_machine
+from terrashift_rl.training.settings import EvaluateConfig, register_config_schemas
 
 register_config_schemas()
-
-SETTINGS = {
-    "checkpoint": or_null(TEXT, "the baselines alone"),
-    "scene_from_checkpoint": BOOLEAN,
-    "episodes": integer(1),
-    "respawn": (BOOLEAN[0], "false (evaluation mode) or true (training mode)"),
-    "baselines": BOOLEAN,
-    "seed": integer(0),
-    "video.steps": integer(0),
-    "video.every": integer(1),
-    "video.fps": POSITIVE,
-    "video.format": one_of("mp4", "gif"),
-    "wandb": BOOLEAN,
-    "cpu_defaults": OVERRIDES,
-}
-"""The rules of every setting but ``device`` (:func:`~terrashift_rl.training.run.resolve_device`)
-and the ``env`` group's (:class:`~terrashift_rl.sim.config.TerraShiftConfig`)."""
 
 
 @hydra.main(version_base=None, config_path="configs", config_name="evaluate")
 def main(cfg: DictConfig) -> None:
     cfg = size_for_the_machine(cfg, device_key="device", defaults_key="cpu_defaults")
-    check_settings(cfg, SETTINGS)
-    device = resolve_device(cfg.device, "device")
+    settings = EvaluateConfig.of(cfg)  # every setting checked, naming a bad one
+    device = resolve_device(settings.device, "device")
     run_dir = Path(HydraConfig.get().runtime.output_dir)
-    checkpoint = load_checkpoint(cfg.checkpoint, required=WEIGHTS_KEYS) if cfg.checkpoint else None
-    if checkpoint is not None and cfg.scene_from_checkpoint:
+    checkpoint = (
+        load_checkpoint(settings.checkpoint, required=WEIGHTS_KEYS) if settings.checkpoint else None
+    )
+    if checkpoint is not None and settings.scene_from_checkpoint:
         scene = TerraShiftConfig(**checkpoint["env_config"])
     else:
-        scene = structured(TerraShiftConfig, cfg.env, "env")
+        scene = settings.env
         if checkpoint is not None:
             check_action_mode(checkpoint, scene, "checkpoint")
-    scene = evaluation_scene(scene, respawn=cfg.respawn)
-    results: dict = {"scene": dataclasses.asdict(scene), "episodes": cfg.episodes}
+    scene = evaluation_scene(scene, respawn=settings.respawn)
+    results: dict = {"scene": dataclasses.asdict(scene), "episodes": settings.episodes}
 
     networks = None
     if checkpoint is not None:
         networks = make_terrashift_networks(TerraShiftModelConfig(**checkpoint["model_config"]))
         networks.load_state_dict(checkpoint["networks"])
         networks.to(device).eval()
-        results["checkpoint"] = str(cfg.checkpoint)
+        results["checkpoint"] = str(settings.checkpoint)
         results["checkpoint_env_steps"] = checkpoint["env_steps"]
         with torch.no_grad():
             for name, exploration in (
@@ -97,14 +69,18 @@ def main(cfg: DictConfig) -> None:
                 ("stochastic", ExplorationType.RANDOM),
             ):
                 env = make_training_env(
-                    scene, networks, num_envs=cfg.episodes, device=device, seed=cfg.seed
+                    scene, networks, num_envs=settings.episodes, device=device, seed=settings.seed
                 )
-                torch.manual_seed(cfg.seed)  # the sampled actions draw from torch's generators
+                torch.manual_seed(settings.seed)  # the sampled actions draw from torch's generators
                 results[name] = evaluate(env, actor_policy(networks.actor, exploration))
                 print(f"policy ({name}): {results[name]}")
-    if cfg.baselines:
+    if settings.baselines:
         results["baselines"] = evaluate_baselines(
-            scene, num_envs=cfg.episodes, device=device, seed=cfg.seed, respawn=cfg.respawn
+            scene,
+            num_envs=settings.episodes,
+            device=device,
+            seed=settings.seed,
+            respawn=settings.respawn,
         )
         for name, metrics in results["baselines"].items():
             print(f"baseline {name}: {metrics}")
@@ -113,24 +89,28 @@ def main(cfg: DictConfig) -> None:
     print(f"wrote {out}")
 
     video = None
-    if cfg.video.steps > 0:
+    if settings.video.steps > 0:
         from terrashift_rl.envs.render import record_rollout, save_video
 
         if networks is not None:
-            env = make_training_env(scene, networks, num_envs=1, device=device, seed=cfg.seed)
+            env = make_training_env(scene, networks, num_envs=1, device=device, seed=settings.seed)
             policy = actor_policy(networks.actor, ExplorationType.DETERMINISTIC)
         else:
             from terrashift_rl.envs import TerraShiftEnv
             from terrashift_rl.envs.baselines import ScriptedHeuristicPolicy
 
-            env = TerraShiftEnv(scene, num_envs=1, device=device, seed=cfg.seed)
+            env = TerraShiftEnv(scene, num_envs=1, device=device, seed=settings.seed)
             policy = ScriptedHeuristicPolicy(scene)
         with torch.no_grad():
-            frames = record_rollout(env, policy, steps=cfg.video.steps, every=cfg.video.every)
-        video = save_video(frames, run_dir / f"rollout.{cfg.video.format}", fps=cfg.video.fps)
+            frames = record_rollout(
+                env, policy, steps=settings.video.steps, every=settings.video.every
+            )
+        video = save_video(
+            frames, run_dir / f"rollout.{settings.video.format}", fps=settings.video.fps
+        )
         print(f"wrote {video}")
 
-    if cfg.wandb:
+    if settings.wandb:
         import wandb
 
         run = wandb.init(
@@ -146,7 +126,7 @@ def main(cfg: DictConfig) -> None:
         }
         run.log({f"{name}/{key}": value for name, m in scored.items() for key, value in m.items()})
         if video is not None:
-            run.log({"rollout": wandb.Video(str(video), format=cfg.video.format)})
+            run.log({"rollout": wandb.Video(str(video), format=settings.video.format)})
         run.finish()
 
 

@@ -8,28 +8,20 @@ The networks are size-agnostic: the same weights run 15x15 with 8 agents and 30x
 model settings are the checkpoint's (unless the command line sets them), also on a CPU, where
 they replace run.cpu_defaults' model=small.
 Config: recipes/configs/mapoca_finetune.yaml (the pretraining config with env=finetune, the
-critics warmed up for 8 iterations first and a KL-adaptive learning rate).
-Training itself is the pretraining recipe's run (:func:`terrashift_rl.training.run.run_training`),
-started from the pretrained weights with a fresh optimiser and fresh schedules.
+critics warmed up for 8 iterations first and a KL-adaptive learning rate). The run is the
+pretraining recipe's (recipes/mapoca_pretrain.py), started from the pretrained weights with a
+fresh optimiser and fresh schedules.
 """
 
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 import hydra
-from hydra.core.hydra_config import HydraConfig
+from mapoca_pretrain import launch  # the pretraining recipe, in this file's folder
 from omegaconf import DictConfig
 
-from terrashift_rl.training.run import (
-    hydra_overrides_of_other_ranks,
-    register_config_schemas,
-    run_training,
-    size_for_the_machine,
-)
-
-register_config_schemas()
+from terrashift_rl.training.launch import hydra_overrides_of_other_ranks
 
 
 @hydra.main(version_base=None, config_path="configs", config_name="mapoca_finetune")
@@ -39,13 +31,7 @@ def main(cfg: DictConfig) -> None:
             "finetuning needs run.pretrained=<pretraining checkpoint> (or run.resume=<a "
             "finetuning checkpoint> to continue one)"
         )
-    cfg = size_for_the_machine(
-        cfg,
-        device_key="run.device",
-        defaults_key="run.cpu_defaults",
-        model_from=("run.resume", "run.pretrained"),  # the network must be the one they hold
-    )
-    run_training(cfg, run_dir=Path(HydraConfig.get().runtime.output_dir))
+    launch(cfg)
 
 
 if __name__ == "__main__":

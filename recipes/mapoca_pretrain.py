@@ -1,46 +1,240 @@
 """MA-POCA pretraining on batched TerraShift environments.
 
     python recipes/mapoca_pretrain.py                                  # the paper's scene
+    python recipes/mapoca_pretrain.py --config-name mapoca_paper       # the paper's Table 1
     python recipes/mapoca_pretrain.py train.num_envs=1024 run.minutes=10 logger=csv
     python recipes/mapoca_pretrain.py run.resume=<run dir>/checkpoints/last.pt
     torchrun --standalone --nproc_per_node=4 recipes/mapoca_pretrain.py   # 4 GPUs, data-parallel
 
-Config: recipes/configs/mapoca_pretrain.yaml (groups env, model, train, loss, logger). Without a
-CUDA device, run.device=auto sizes the run for the CPU (run.cpu_defaults) where the command line
-leaves a setting alone; a run from a checkpoint (run.resume, run.pretrained) builds its model.
-Outputs (checkpoints, logs, resolved config) go to Hydra's run directory.
-The run itself, config -> setup -> train loop -> cleanup, is
-:func:`terrashift_rl.training.run.run_training`.
+Config: recipes/configs/mapoca_pretrain.yaml (groups env, model, train, algo, loss, logger; the
+settings room is :mod:`terrashift_rl.training.settings`). Without a CUDA device, run.device=auto
+sizes the run for the CPU (run.cpu_defaults) where the command line leaves a setting alone; a run
+from a checkpoint (run.resume, run.pretrained) builds its model. Outputs (checkpoints, logs,
+resolved config) go to Hydra's run directory.
+
+:func:`train` is the run: config, setup (environments, networks, trainer with its loss and
+optimiser, logger), the train loop, cleanup; :func:`launch` sizes the config for the machine
+first. The finetuning recipe (recipes/mapoca_finetune.py) launches the same run.
+Started by ``torchrun``, each process joins the process group (unless it is in it already; then
+it stays), trains data-parallel on its own device with seed ``run.seed + rank``
+(:mod:`terrashift_rl.training.distributed`) and leaves the group at the end; rank 0 alone logs,
+shows progress and writes files. SIGINT or SIGTERM stops after the running iteration with a
+checkpoint.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import sys
+import time
 from pathlib import Path
 
 import hydra
+import torch
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
 
-from terrashift_rl.training.run import (
+from terrashift_rl.modules import make_terrashift_networks
+from terrashift_rl.training import OnPolicyTrainer, distributed, make_training_env
+from terrashift_rl.training.checkpoint import (
+    RESUME_KEYS,
+    WEIGHTS_KEYS,
+    check_action_mode,
+    check_resumable,
+    last_state,
+    load_checkpoint,
+    network_settings,
+    remove_stale_temporaries,
+    save_checkpoint,
+    update_best,
+    weights_state,
+    world_size_change,
+)
+from terrashift_rl.training.evaluation import evaluate_periodically, evaluation_scene
+from terrashift_rl.training.launch import (
     hydra_overrides_of_other_ranks,
-    register_config_schemas,
-    run_training,
+    resolve_device,
     size_for_the_machine,
 )
+from terrashift_rl.training.loggers import close_logger, log_scalars, logger_run_id, make_logger
+from terrashift_rl.training.settings import RecipeConfig, register_config_schemas
+from terrashift_rl.training.signals import StopRequest
+from terrashift_rl.training.trainer import iterate_until
 
 register_config_schemas()
 
 
-@hydra.main(version_base=None, config_path="configs", config_name="mapoca_pretrain")
-def main(cfg: DictConfig) -> None:
+def train(cfg: DictConfig, *, run_dir: Path) -> Path:
+    """Trains as the composed config ``cfg`` says, writing the checkpoints, logs and resolved
+    config under ``run_dir``; returns the last checkpoint's path."""
+    # --- config: every setting checked before anything is built ------------------------------
+    settings = RecipeConfig.of(cfg)
+    run = settings.run
+    device = resolve_device(run.device, "run.device")
+    configs = {
+        "env_config": dataclasses.asdict(settings.env),
+        "model_config": dataclasses.asdict(settings.model),
+    }
+    resume = load_checkpoint(run.resume, required=RESUME_KEYS) if run.resume else None
+    if resume is not None:
+        train_config = dataclasses.asdict(settings.train)
+        check_resumable(
+            resume,
+            {**configs, "train_config": train_config, "algo": settings.train.algo},
+            path=run.resume,
+        )
+    pretrained = load_checkpoint(run.pretrained, required=WEIGHTS_KEYS) if run.pretrained else None
+    if pretrained is not None:
+        if network_settings(pretrained["model_config"]) != network_settings(
+            configs["model_config"]
+        ):
+            raise ValueError(
+                f"run.pretrained={run.pretrained} holds a network of another shape; use the "
+                "model settings it was trained with (the recipes do when the command line sets "
+                "none)"
+            )
+        check_action_mode(pretrained, settings.env, "run.pretrained")
+    checkpoints = run_dir / "checkpoints"
+    # a run killed while writing a checkpoint leaves its temporary file beside it
+    folders = [checkpoints] if resume is None else [checkpoints, Path(run.resume).parent]
+    for folder in folders if distributed.is_main_process() else []:
+        for path in remove_stale_temporaries(folder):
+            print(f"removed {path}, left by a checkpoint write that never finished")
+
+    # --- setup: environments, networks, trainer (loss, optimiser), logger ---------------------
+    joins = distributed.launched() and not distributed.is_distributed()
+    if distributed.launched():  # one rank of torchrun's: its own device, seed and environments
+        device = distributed.init_process_group(run.device, key="run.device")
+    main, seed = distributed.is_main_process(), run.seed + distributed.rank()
+    # rank 0 alone evaluates and writes best.pt and snapshots
+    window = run.best_window if main else 0
+    snapshot_every = run.snapshot_every if main else None
+    eval_every = run.eval_every if main else None
+    torch.manual_seed(seed)
+    networks = make_terrashift_networks(settings.model).to(device)
+    env = make_training_env(
+        settings.env, networks, num_envs=settings.train.num_envs, device=device, seed=seed
+    )
+    trainer = OnPolicyTrainer(env, networks, settings.train)
+    if pretrained is not None:
+        trainer.load_weights(pretrained)
+    # evaluation mode (no respawn, no shaping), the same scenes at every evaluation
+    eval_env = eval_every and make_training_env(
+        evaluation_scene(settings.env),
+        networks,
+        num_envs=run.eval_episodes,
+        device=device,
+        seed=run.eval_seed,
+    )
+    run_id, best = None, {"reward": -math.inf, "recent": []}
+    if resume is not None:
+        trainer.load_state_dict(resume)
+        run_id, best = resume["logger_run_id"], resume["best"]
+        if main and resume.get("world_size", 1) != distributed.world_size():
+            print(world_size_change(resume.get("world_size", 1), distributed.world_size()))
+    logger = make_logger(settings.logger, run.name, run_dir, run_id) if main else None
+    run_id = run_id or logger_run_id(logger)
+    if main:
+        OmegaConf.save(cfg, run_dir / "config.yaml")
+
+    def evaluate_now() -> dict[str, float]:
+        return evaluate_periodically(
+            eval_env, networks.actor, seed=run.eval_seed, sampled=run.eval_sampled
+        )
+
+    def save_last() -> None:
+        state = last_state(trainer, configs, run_id, best)  # on every rank: a collective
+        if main:
+            save_checkpoint(state, last)
+
+    # --- train loop ---------------------------------------------------------------------------
+    deadline = None if run.minutes is None else time.monotonic() + 60.0 * run.minutes
+    last = checkpoints / "last.pt"
+    progress = tqdm(
+        total=run.total_env_steps,
+        initial=trainer.env_steps,
+        unit="step",
+        unit_scale=True,
+        desc=run.name,
+        dynamic_ncols=True,
+        disable=not main,
+    )
+    goal_fraction = "-"  # the latest evaluation's goal fraction, for the progress bar
+    if eval_env and pretrained is not None and resume is None:  # a finetune's zero-shot score
+        zero_shot = evaluate_now()
+        goal_fraction = f"{zero_shot['eval_goal_fraction']:.3f}"
+        progress.write(f"evaluation of the pretrained weights: {zero_shot}")
+        log_scalars(logger, zero_shot, trainer.env_steps)
+    try:
+        with StopRequest(progress) as stop:
+            for metrics in iterate_until(
+                trainer, total_env_steps=run.total_env_steps, deadline=deadline
+            ):
+                progress.update(trainer.env_steps - progress.n)
+                if eval_env and trainer.iteration % eval_every == 0:
+                    metrics.update(evaluate_now())
+                    goal_fraction = f"{metrics['eval_goal_fraction']:.3f}"
+                progress.set_postfix(
+                    eval_goals=goal_fraction,
+                    reward=f"{metrics['reward_per_decision']:+.4f}",
+                    steps_per_s=f"{metrics['env_steps_per_s']:,.0f}",
+                )
+                log_scalars(logger, metrics, trainer.env_steps)
+                if window:
+                    reward = metrics["reward_per_decision"]
+                    update_best(best, reward, window, trainer, configs, checkpoints / "best.pt")
+                if trainer.iteration % run.checkpoint_every == 0:
+                    save_last()
+                if snapshot_every and trainer.iteration % snapshot_every == 0:
+                    snapshot = checkpoints / f"iteration_{trainer.iteration:06d}.pt"
+                    save_checkpoint(weights_state(trainer, configs), snapshot)
+                if distributed.any_process(stop.requested):  # every rank stops alike
+                    break
+            # between iterations: the state is consistent, the checkpoint resumes exactly
+            save_last()
+            if eval_env and trainer.iteration % eval_every:  # the final policy's score too
+                final = evaluate_now()
+                progress.write(f"evaluation at {trainer.env_steps:,} env-steps: {final}")
+                log_scalars(logger, final, trainer.env_steps)
+    except KeyboardInterrupt:
+        if main:
+            progress.write(f"interrupted mid-iteration; {last} is the last checkpoint written")
+        raise SystemExit(130) from None
+    except FloatingPointError as error:
+        if not main:  # every rank stops at the same iteration; rank 0 says why
+            raise SystemExit(1) from None
+        written = f"{last} is the last checkpoint written" if last.exists() else "no checkpoint"
+        raise SystemExit(f"{error}\nstopped without saving that iteration; {written}") from None
+
+    # --- cleanup ------------------------------------------------------------------------------
+    finally:
+        progress.close()
+        close_logger(logger)
+        if joins:  # leaves the process group as it found it
+            distributed.destroy_process_group()
+    if main:
+        print(
+            f"{trainer.env_steps:,} env-steps in {trainer.iteration} iterations; checkpoint {last}"
+        )
+    return last
+
+
+def launch(cfg: DictConfig) -> Path:
+    """:func:`train` with the config sized for the machine, in Hydra's run directory."""
     cfg = size_for_the_machine(
         cfg,
         device_key="run.device",
         defaults_key="run.cpu_defaults",
         model_from=("run.resume", "run.pretrained"),  # the network must be the one they hold
     )
-    run_training(cfg, run_dir=Path(HydraConfig.get().runtime.output_dir))
+    return train(cfg, run_dir=Path(HydraConfig.get().runtime.output_dir))
+
+
+@hydra.main(version_base=None, config_path="configs", config_name="mapoca_pretrain")
+def main(cfg: DictConfig) -> None:
+    launch(cfg)
 
 
 if __name__ == "__main__":

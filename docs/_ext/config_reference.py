@@ -73,12 +73,12 @@ def split_docstring(doc: str) -> tuple[str, str, str]:
     return doc.rstrip("."), "", ""
 
 
-def field_docs(cls: type) -> list[FieldDoc]:
-    """Every field of dataclass ``cls`` with its docstring parts, default and section."""
+def _attribute_docs(cls: type) -> dict[str, tuple[str, str]]:
+    """Every field docstring written in the class body of ``cls``, with its section."""
     source = textwrap.dedent(inspect.getsource(cls))
     lines = source.splitlines()
     body = ast.parse(source).body[0].body
-    docs: dict[str, tuple[str, int]] = {}
+    docs: dict[str, tuple[str, str]] = {}
     for node, after in zip(body, [*body[1:], None], strict=True):
         if not (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)):
             continue
@@ -87,18 +87,29 @@ def field_docs(cls: type) -> list[FieldDoc]:
             and isinstance(after.value, ast.Constant)
             and isinstance(after.value.value, str)
         ):
-            docs[node.target.id] = (after.value.value, node.lineno)
+            section = ""
+            for line in reversed(lines[: node.lineno - 1]):
+                match = _SECTION.match(line)
+                if match:
+                    section = match.group(1)
+                    break
+            docs[node.target.id] = (after.value.value, section)
+    return docs
+
+
+def field_docs(cls: type) -> list[FieldDoc]:
+    """Every field of dataclass ``cls`` with its docstring parts, default and section; a field
+    that a base class declares has its docstring there. A field declared with
+    :func:`terrashift_rl.fields.setting` shows the range it allows."""
+    docs: dict[str, tuple[str, str]] = {}
+    for base in reversed(cls.__mro__):  # a subclass's docstring wins
+        if dataclasses.is_dataclass(base):
+            docs.update(_attribute_docs(base))
     result = []
     for field in dataclasses.fields(cls):
         if field.name not in docs:
             raise ValueError(f"{cls.__name__}.{field.name} has no attribute docstring")
-        doc, lineno = docs[field.name]
-        section = ""
-        for line in reversed(lines[: lineno - 1]):
-            match = _SECTION.match(line)
-            if match:
-                section = match.group(1)
-                break
+        doc, section = docs[field.name]
         if field.default is not dataclasses.MISSING:
             default = repr(field.default)
         elif field.default_factory is not dataclasses.MISSING:
@@ -107,6 +118,11 @@ def field_docs(cls: type) -> list[FieldDoc]:
             default = "(required)"
         description, unit, allowed = split_docstring(doc)
         type_name = field.type if isinstance(field.type, str) else field.type.__name__
+        declared = field.metadata.get("allowed")
+        if declared is not None:
+            allowed = declared.text
+        if field.metadata.get("null"):
+            allowed = f"{allowed or 'any'}; null: {field.metadata['null']}"
         if not allowed and type_name == "bool":
             allowed = "True / False"
         elif not allowed and unit:

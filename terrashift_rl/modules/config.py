@@ -8,7 +8,9 @@ Nothing here depends on the number of agents, objects or grid columns: the same 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+
+from terrashift_rl.fields import above, at_least, check_fields, interval, one_of, setting
 
 __all__ = ["DISTRIBUTIONS", "TerraShiftModelConfig"]
 
@@ -30,81 +32,75 @@ class TerraShiftModelConfig:
         32
     """
 
-    embed_dim: int = 128
+    embed_dim: int = setting(128, at_least(1))
     """Width d of every token and agent embedding."""
-    num_heads: int = 8
+    num_heads: int = setting(8, at_least(1))
     """Attention heads in the trunk, the Swin stages and the critic heads."""
-    dropout: float = 0.0
+    dropout: float = setting(0.0, interval(0, 1, high_open=True))
     """Dropout probability, applied only in passes that will be backpropagated (see
     ``layers``). Table 1 uses 0.05, but collection has none, so in an update the ratio of new
     to stored log-probabilities then also carries dropout's noise: late in a run most of the
     logged approximate KL and clip fraction (``benchmarks/diagnose_policy.py``), and runs with
     it lost more and more spheres (docs/experiments.md)."""
 
-    agent_observation_dim: int = 9
+    agent_observation_dim: int = setting(9, at_least(1))
     """Features per agent: wavelet [x, y, theta, A, sigma_x, sigma_y, v_x, v_y, omega]."""
-    agent_hidden_dim: int = 128
+    agent_hidden_dim: int = setting(128, at_least(1))
     """Hidden width of the agent MLP (9 -> 128 -> d)."""
-    agent_id_code: bool = True
+    agent_id_code: bool = setting(True)
     """Add a sinusoidal agent-index code; breaks permutation equivariance over agents."""
-    agent_id_dim: int = 16
+    agent_id_dim: int = setting(16, at_least(1))
     """Width of the sinusoidal agent-index code before its projection to d."""
 
-    object_feature_dim: int = 9
+    object_feature_dim: int = setting(9, at_least(1))
     """Features per object slot: position, goal position, velocity."""
-    object_hidden_dim: int = 64
+    object_hidden_dim: int = setting(64, at_least(1))
     """Hidden width of the per-slot object MLP (9 -> 64 -> d)."""
-    relative_objects: bool = False
+    relative_objects: bool = setting(False)
     """Give every agent its own object tokens, encoded from the slot's features and the offsets
     from the agent's wavelet to the object and to its goal, straight and the short way round
     a wrapping grid (17 -> 64 -> d). Off is the paper's
     design: one token per object, shared by all agents. Reads x, y as the first two agent
     features and as features 0-1 (object) and 3-4 (goal) of a slot, all over the platform."""
 
-    heightmap_channels: int = 1
+    heightmap_channels: int = setting(1, at_least(1))
     """Channels of the heightmap observation (coordinate channels are added on top)."""
-    cnn_channels: list[int] = field(default_factory=lambda: [16, 32, 32])
+    cnn_channels: list[int] = setting([16, 32, 32])
     """Output channels of the CNN stem's convolutions."""
-    cnn_kernels: list[int] = field(default_factory=lambda: [5, 3, 3])
+    cnn_kernels: list[int] = setting([5, 3, 3])
     """Kernel sizes of the CNN stem's convolutions."""
-    cnn_strides: list[int] = field(default_factory=lambda: [2, 2, 1])
+    cnn_strides: list[int] = setting([2, 2, 1])
     """Strides of the CNN stem's convolutions."""
-    cnn_groups: list[int] = field(default_factory=lambda: [4, 8, 8])
+    cnn_groups: list[int] = setting([4, 8, 8])
     """GroupNorm groups after each convolution of the CNN stem."""
-    heightmap_cells_per_token: int = 8
+    heightmap_cells_per_token: int = setting(8, at_least(1))
     """Heightmap cells per pooled token along each side: a 32 x 32 map pools to 4 x 4 tokens,
     64 x 64 to 8 x 8 (rounded up to a multiple of the Swin windows and the patch merge)."""
-    swin_windows: list[int] = field(default_factory=lambda: [2, 4])
+    swin_windows: list[int] = setting([2, 4])
     """Window side of each windowed self-attention stage; a 2 x 2 patch merge follows the last."""
-    tokenizer_base_tokens: int = 12
+    tokenizer_base_tokens: int = setting(12, at_least(1))
     """Spatial-token budget when the heightmap yields exactly this many candidate tokens."""
-    tokenizer_min_tokens: int = 8
+    tokenizer_min_tokens: int = setting(8, at_least(1))
     """Lower bound of the spatial-token budget (never more than the candidates)."""
-    tokenizer_max_tokens: int = 16
+    tokenizer_max_tokens: int = setting(16, at_least(1))
     """Upper bound of the spatial-token budget, whatever the heightmap size."""
-    tokenizer_hidden_dim: int = 64
+    tokenizer_hidden_dim: int = setting(64, at_least(1))
     """Hidden width of the tokenizer's importance scorer."""
 
-    trunk_layers: int = 3
+    trunk_layers: int = setting(3, at_least(1))
     """Layers of [parallel cross-attention, agent self-attention, feed-forward]."""
-    ffn_dim: int = 384
+    ffn_dim: int = setting(384, at_least(1))
     """Hidden width of every feed-forward block (trunk and Swin stages)."""
-    output_hidden_dim: int = 192
+    output_hidden_dim: int = setting(192, at_least(1))
     """Hidden width of the trunk's output MLP (d -> 192 -> d)."""
-    gru_layers: int = 2
+    gru_layers: int = setting(2, at_least(1))
     """Stacked GRU layers of the agent memory (hidden size d)."""
 
-    policy_hidden_dim: int = 192
+    policy_hidden_dim: int = setting(192, at_least(1))
     """Hidden width of the shared policy MLP (d -> 192 -> 192)."""
-    min_concentration: float = 1.01
+    min_concentration: float = setting(1.01, above(0))
     """Lower bound of both Beta concentrations; above 1 the density is unimodal and finite."""
-    policy_output_gain: float = 1.0
-    """Factor on the initial weights and biases of the policy's two output layers (PyTorch's
-    default initialisation at 1). Near 0, every agent starts from the same action distribution,
-    centred on the zero action whatever it observes; 0.01 is the setting Andrychowicz et al.
-    (2021, "What matters in on-policy reinforcement learning?") recommend; it changes only the
-    initial weights, so a run may resume with another value."""
-    distribution: str = "beta"
+    distribution: str = setting("beta", one_of(*DISTRIBUTIONS))
     """The policy's action distribution: ``beta`` (the paper's: a Beta per action dimension on
     ``[-action_range, action_range]``, concentrations from the network) or ``normal`` (a
     Gaussian whose mean comes from the network and whose standard deviation is one learned
@@ -112,79 +108,61 @@ class TerraShiftModelConfig:
     simulator clips its samples to the actuators' [-1, 1]). A Beta whose mean nears an end of
     its support must be concentrated, so there a decisive action costs entropy; a Gaussian's
     mean and spread are set apart."""
-    initial_std: float = 0.5
+    initial_std: float = setting(0.5, above(0))
     """With ``distribution=normal``, the standard deviation every action dimension starts
     from, > 0 (0.5 is about the spread of the Beta head's initial Beta(1.7, 1.7) on [-1, 1])."""
-    initial_action_mean: list[float] = field(default_factory=list)
+    initial_action_mean: list[float] = setting([])
     """The policy's mean action at initialisation, one value per action dimension (TerraShift's
     v_x, v_y, omega, amplitude, sigma_x, sigma_y), each inside +-action_range; empty: the
     middle of the range. It shifts the initial biases of the policy's output layers, so it
     holds exactly where the rest of those layers reads zero: a Beta keeps its smaller
     concentration at the centred start's (``min_concentration + log 2``) and raises the other;
-    a Gaussian's mean moves by it. Like ``policy_output_gain``, it changes only initial
-    weights."""
-    critic_hidden_dim: int = 128
+    a Gaussian's mean moves by it. It changes only initial weights, so a run may resume with
+    another value."""
+    critic_hidden_dim: int = setting(128, at_least(1))
     """Hidden width of the value and baseline MLPs."""
-    action_range: float = 1.0
+    action_range: float = setting(1.0, at_least(1))
     """The policy's Beta spans [-action_range, action_range] in every action dimension, >= 1.
     The simulator clips actions to the actuators' [-1, 1]; above 1, a mean action reaches an
     actuator's limit at a moderate concentration instead of the Beta's very edge (2: a mean at
     three quarters of the Beta's support), and samples beyond the limit act as the limit."""
 
     def __post_init__(self) -> None:
-        stem_lengths = {
-            len(self.cnn_channels),
-            len(self.cnn_kernels),
-            len(self.cnn_strides),
-            len(self.cnn_groups),
-        }
-        if len(stem_lengths) != 1:
+        check_fields(self, "model")
+        stem = ("cnn_channels", "cnn_kernels", "cnn_strides", "cnn_groups")
+        if len({len(getattr(self, name)) for name in stem}) != 1:
             raise ValueError(
-                "cnn_channels, cnn_kernels, cnn_strides and cnn_groups must have the same length."
+                f"model.{', model.'.join(stem)} must have the same length, got "
+                + ", ".join(str(getattr(self, name)) for name in stem)
             )
         for channels, groups in zip(self.cnn_channels, self.cnn_groups, strict=True):
             if channels % groups:
-                raise ValueError(f"cnn_groups {groups} does not divide cnn_channels {channels}.")
-        if self.embed_dim % self.num_heads:
-            raise ValueError(f"num_heads {self.num_heads} does not divide embed_dim.")
-        if self.embed_dim % 4:
-            raise ValueError("embed_dim must be a multiple of 4 for the 2-D sin-cos code.")
-        if self.agent_id_dim % 2:
-            raise ValueError("agent_id_dim must be even (sine and cosine halves).")
-        if not self.swin_windows:
-            raise ValueError("swin_windows needs at least one stage.")
-        if not (
-            1
-            <= self.tokenizer_min_tokens
-            <= self.tokenizer_base_tokens
-            <= self.tokenizer_max_tokens
-        ):
-            raise ValueError(
-                "tokenizer budget must satisfy 1 <= min_tokens <= base_tokens <= max_tokens."
-            )
-        if self.gru_layers < 1:
-            raise ValueError("gru_layers must be at least 1.")
-        if self.min_concentration <= 0:
-            raise ValueError("min_concentration must be positive.")
-        if not self.action_range >= 1.0:
-            raise ValueError(
-                f"action_range must be >= 1 (below, the policy cannot reach the actuators' "
-                f"limits of +-1), got {self.action_range}."
-            )
-        if self.distribution not in DISTRIBUTIONS:
-            raise ValueError(
-                f"distribution must be one of {DISTRIBUTIONS}, got {self.distribution!r}."
-            )
-        if not (math.isfinite(self.initial_std) and self.initial_std > 0):
-            raise ValueError(f"initial_std must be a finite number > 0, got {self.initial_std}.")
-        for value in self.initial_action_mean:
-            if not (math.isfinite(value) and abs(value) < self.action_range):
                 raise ValueError(
-                    f"initial_action_mean must hold finite values inside +-action_range "
-                    f"({self.action_range}), got {list(self.initial_action_mean)}."
+                    f"model.cnn_groups must divide model.cnn_channels entry by entry, got "
+                    f"{self.cnn_groups} for {self.cnn_channels}"
                 )
-        if self.policy_output_gain < 0:
-            raise ValueError(f"policy_output_gain must be >= 0, got {self.policy_output_gain}.")
+        if self.embed_dim % self.num_heads or self.embed_dim % 4:
+            raise ValueError(
+                f"model.embed_dim must be a multiple of 4 (the 2-D sin-cos code) and of "
+                f"model.num_heads ({self.num_heads}), got {self.embed_dim}"
+            )
+        if self.agent_id_dim % 2:
+            raise ValueError(
+                f"model.agent_id_dim must be even (sine and cosine halves), got {self.agent_id_dim}"
+            )
+        if not self.swin_windows:
+            raise ValueError("model.swin_windows must hold at least one stage, got []")
+        budget = (self.tokenizer_min_tokens, self.tokenizer_base_tokens, self.tokenizer_max_tokens)
+        if not budget[0] <= budget[1] <= budget[2]:
+            raise ValueError(
+                "model.tokenizer_min_tokens <= model.tokenizer_base_tokens <= "
+                f"model.tokenizer_max_tokens must hold, got {budget}"
+            )
+        if any(abs(value) >= self.action_range for value in self.initial_action_mean):
+            raise ValueError(
+                f"model.initial_action_mean must hold values inside +-model.action_range "
+                f"({self.action_range}), got {list(self.initial_action_mean)}"
+            )
 
     @property
     def token_grid_multiple(self) -> int:

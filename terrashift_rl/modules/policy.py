@@ -20,7 +20,7 @@ class BetaPolicyHead(nn.Module):
 
     Concentrations are ``min_concentration + softplus(logit)``; above 1 both, the Beta density is
     unimodal and vanishes at the ends of the action range. The output layers start from
-    PyTorch's default initialisation times ``config.policy_output_gain``.
+    PyTorch's default initialisation.
 
     Args:
         config: network sizes.
@@ -66,8 +66,7 @@ class GaussianPolicyHead(nn.Module):
 
     The mean is unbounded: the simulator clips actions to the actuators' [-1, 1], so a mean
     beyond an end acts as that end whatever the spread. The mean layer starts from PyTorch's
-    default initialisation times ``config.policy_output_gain``; the spread from
-    ``config.initial_std``.
+    default initialisation, the spread from ``config.initial_std``.
 
     Args:
         config: network sizes.
@@ -109,11 +108,7 @@ def _policy_mlp(config: TerraShiftModelConfig) -> nn.Sequential:
 
 
 def _output_layer(config: TerraShiftModelConfig, action_dim: int) -> nn.Linear:
-    layer = nn.Linear(config.policy_hidden_dim, action_dim)
-    with torch.no_grad():
-        layer.weight.mul_(config.policy_output_gain)
-        layer.bias.mul_(config.policy_output_gain)
-    return layer
+    return nn.Linear(config.policy_hidden_dim, action_dim)
 
 
 def _initial_action_mean(config: TerraShiftModelConfig, action_dim: int) -> Tensor | None:

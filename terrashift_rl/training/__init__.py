@@ -1,14 +1,21 @@
-"""Training utilities the recipes compose: the on-policy trainer and its algorithms (MA-POCA,
-MAPPO, IPPO), schedules, checkpoints, data parallelism over torchrun's processes."""
+"""Training utilities the recipes compose: the settings room, the on-policy trainer and its
+algorithms (MA-POCA, MAPPO, IPPO), schedules, checkpoints, loggers, signals, sizing for the
+machine, data parallelism over torchrun's processes."""
 
-from terrashift_rl.training.algorithms import ALGORITHMS, Algorithm
+from terrashift_rl.training.algorithms import (
+    ALGORITHMS,
+    Algorithm,
+    IPPOConfig,
+    LossConfig,
+    MAPOCAConfig,
+    MAPPOConfig,
+)
 from terrashift_rl.training.checkpoint import load_checkpoint, save_checkpoint
-from terrashift_rl.training.run import run_training
 from terrashift_rl.training.schedules import LinearSchedule
+from terrashift_rl.training.settings import RecipeConfig, TrainConfig
 from terrashift_rl.training.trainer import (
     MAPOCATrainer,
     OnPolicyTrainer,
-    TrainConfig,
     action_medians,
     concentration_metrics,
     episode_metrics,
@@ -19,9 +26,14 @@ from terrashift_rl.training.trainer import (
 __all__ = [
     "ALGORITHMS",
     "Algorithm",
+    "IPPOConfig",
     "LinearSchedule",
+    "LossConfig",
+    "MAPOCAConfig",
     "MAPOCATrainer",
+    "MAPPOConfig",
     "OnPolicyTrainer",
+    "RecipeConfig",
     "TrainConfig",
     "action_medians",
     "concentration_metrics",
@@ -29,6 +41,5 @@ __all__ = [
     "iterate_until",
     "load_checkpoint",
     "make_training_env",
-    "run_training",
     "save_checkpoint",
 ]

@@ -1,7 +1,7 @@
 """The on-policy algorithms the trainer runs: each a loss built on the shared networks.
 
-:data:`ALGORITHMS` maps ``train.algo`` to a function that builds an :class:`Algorithm` from the
-networks and the :class:`~terrashift_rl.training.TrainConfig`. All three share the trunk and the
+:data:`ALGORITHMS` maps ``algo`` to the algorithm's loss settings, which build an
+:class:`Algorithm` on the networks (:meth:`LossConfig.make`). All three share the trunk and the
 Beta policy head, and the trainer's loop (collection, one value-estimation pass, epochs of
 mini-batches, schedules, critic warm-up, checkpoints) is the same for each; only the critic and
 the loss differ:
@@ -14,18 +14,21 @@ the loss differ:
   on its own embedding (:func:`~terrashift_rl.modules.make_agent_value_head`): A_i is agent i's
   GAE advantage from V_i.
 
-A new algorithm is a builder here, its entry in :data:`ALGORITHMS` and a config file that sets
-``train.algo``.
+Each algorithm owns its loss settings, a :class:`LossConfig` subclass (as BenchMARL's
+``MappoConfig``): the ``algo`` config group picks it, and the ``loss`` group holds its fields, so a
+setting of another algorithm (MA-POCA's ``baseline_coeff`` or teacher for MAPPO) is refused by
+name. A new algorithm is its settings class with a ``make`` method here, its entry in
+:data:`ALGORITHMS` and a file in ``recipes/configs/algo/``.
 
 For MAPPO and IPPO the value-estimation pass is :class:`EmbeddingCriticEstimate`: it runs the
 trunk and the critic in step mode, as MA-POCA's estimator does, and hands the values to the
 loss's torchrl :class:`~torchrl.objectives.value.MultiAgentGAE`, which broadcasts the team's done
 flags over the agents and computes per-agent advantages and returns. The settings mean the same
 for every algorithm (value normalisation, advantages standardised once per collected batch,
-value clipping, the coefficients) except those a loss has no use for (``baseline_coeff`` outside
-MA-POCA) and the teacher, which only MA-POCA's loss has. MA-POCA standardises the advantages
-over every agent at once, MultiAgentGAE each agent's over its own (torchrl's multi-agent
-convention; the agents share their networks, so the two differ little).
+value clipping, the coefficients); ``baseline_coeff`` and the teacher are MA-POCA's alone.
+MA-POCA standardises the advantages over every agent at once, MultiAgentGAE each agent's over its
+own (torchrl's multi-agent convention; the agents share their networks, so the two differ
+little).
 
 Two diagnostics differ in kind: torchrl's ``kl_approx`` is the mean log-ratio log π_old - log π
 (unbiased, but a mini-batch's may be negative), MA-POCA's Schulman's non-negative k3 estimate of
@@ -35,10 +38,9 @@ a mini-batch's environments (the trainer logs their mean).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import ClassVar
 
 import torch
 from tensordict import TensorDictBase
@@ -50,20 +52,128 @@ from torchrl.objectives import LossModule, ValueEstimators
 from torchrl.objectives.multiagent import IPPOLoss, MAPPOLoss
 from torchrl.objectives.value import MultiAgentGAE
 
+from terrashift_rl.fields import above, at_least, check_fields, interval, setting
 from terrashift_rl.modules import TerraShiftNetworks, keys, make_agent_value_head
 from terrashift_rl.modules.independent import AGENT_VALUE
 from terrashift_rl.objectives import MAPOCALoss, ValueNormalizer
 from terrashift_rl.training import distributed
 
-if TYPE_CHECKING:
-    from terrashift_rl.training.trainer import TrainConfig
-
-__all__ = ["ALGORITHMS", "Algorithm", "EmbeddingCriticEstimate"]
+__all__ = [
+    "ALGORITHMS",
+    "Algorithm",
+    "EmbeddingCriticEstimate",
+    "IPPOConfig",
+    "LossConfig",
+    "MAPOCAConfig",
+    "MAPPOConfig",
+]
 
 VALUE_TARGET = ("agents", "value_target")
 """float32 [B, K, 1]: MAPPO's and IPPO's per-agent returns, in the critic's units."""
 ADVANTAGE = ("agents", "advantage")
 """float32 [B, K, 1]: per-agent advantages, standardised over the collected batch."""
+
+
+@dataclass
+class LossConfig:
+    """Loss settings every algorithm has (the ``loss`` config group); start/end pairs are linear
+    schedules over ``train.schedule_iterations`` updates. A subclass per algorithm adds its own
+    and builds the algorithm (:meth:`make`)."""
+
+    algo: ClassVar[str]
+    """The ``algo`` config group's option (``loss.algo``) that picks this class."""
+
+    gamma: float = setting(0.95, interval(0, 1, low_open=True))
+    """Discount."""
+    lmbda: float = setting(0.92, interval(0, 1))
+    """GAE lambda."""
+    clip_epsilon_start: float = setting(0.2, interval(0, 1, low_open=True, high_open=True))
+    """Clip range of the policy's probability ratio (the loss's ``clip_epsilon``) at the start."""
+    clip_epsilon_end: float = setting(0.1, interval(0, 1, low_open=True, high_open=True))
+    """Clip range of the probability ratio after ``schedule_iterations`` updates."""
+    entropy_coeff_start: float = setting(0.002, at_least(0))
+    """Weight of the entropy bonus (the loss's ``entropy_coeff``) at the start."""
+    entropy_coeff_end: float = setting(0.002, at_least(0))
+    """Weight of the entropy bonus after ``schedule_iterations`` updates."""
+    clip_value_start: float = setting(0.3, above(0))
+    """Clip range of the critics' estimates around those at collection (the loss's
+    ``clip_value``, as in torchrl's ``ClipPPOLoss``) at the start."""
+    clip_value_end: float = setting(0.1, above(0))
+    """Clip range of the critics' estimates after ``schedule_iterations`` updates."""
+    value_coeff: float = setting(1.0, at_least(0))
+    """Weight of the value loss."""
+    normalize_value: bool = setting(True)
+    """Train the critics on running-normalised returns (ValueNormalizer)."""
+    value_norm_decay: float = setting(0.99, interval(0, 1, high_open=True))
+    """Weight of the old return statistics at each iteration."""
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Raises ``ValueError`` naming the first setting of the wrong type or outside its
+        range."""
+        check_fields(self, "loss")
+
+    def make(self, networks: TerraShiftNetworks, *, max_batch: int) -> Algorithm:
+        """The algorithm on ``networks``; its estimation pass runs at most ``max_batch``
+        environments' sequences at a time."""
+        raise NotImplementedError
+
+
+@dataclass
+class MAPOCAConfig(LossConfig):
+    """MA-POCA's loss settings: the shared ones, the baseline's weight and the teacher."""
+
+    algo: ClassVar[str] = "mapoca"
+    baseline_coeff: float = setting(0.5, at_least(0))
+    """Weight of the counterfactual baseline's loss."""
+    teacher_coeff: float = setting(0.0, at_least(0))
+    """Weight, at the start, of the pull of the policy's mean action towards the scripted
+    heuristic's action (:class:`~terrashift_rl.envs.baselines.ScriptedHeuristicPolicy`, computed
+    on every collected step); 0 trains without a teacher."""
+    teacher_coeff_end: float = setting(0.0, at_least(0))
+    """The teacher's weight after ``teacher_iterations`` updates, held from then on; 0 lets
+    the policy learn from the reward alone."""
+    teacher_iterations: int = setting(200, at_least(1))
+    """Updates over which the teacher's weight falls linearly to ``teacher_coeff_end``."""
+
+    def validate(self) -> None:
+        super().validate()
+        if self.teacher_coeff_end and not self.teacher_coeff:
+            raise ValueError(
+                f"loss.teacher_coeff_end is {self.teacher_coeff_end} but loss.teacher_coeff "
+                f"is 0 (no teacher): set loss.teacher_coeff > 0 to train with a teacher"
+            )
+
+    def make(self, networks: TerraShiftNetworks, *, max_batch: int) -> Algorithm:
+        return make_mapoca(networks, self, max_batch=max_batch)
+
+
+@dataclass
+class MAPPOConfig(LossConfig):
+    """MAPPO's loss settings: the shared ones; the advantages come from the value, so its weight
+    is > 0."""
+
+    algo: ClassVar[str] = "mappo"
+    value_coeff: float = setting(1.0, above(0))
+    """Weight of the value loss (> 0: the advantages are learned from the value)."""
+
+    def make(self, networks: TerraShiftNetworks, *, max_batch: int) -> Algorithm:
+        return make_mappo(networks, self, max_batch=max_batch)
+
+
+@dataclass
+class IPPOConfig(LossConfig):
+    """IPPO's loss settings: the shared ones; the advantages come from the per-agent values, so
+    their weight is > 0."""
+
+    algo: ClassVar[str] = "ippo"
+    value_coeff: float = setting(1.0, above(0))
+    """Weight of the value loss (> 0: the advantages are learned from the values)."""
+
+    def make(self, networks: TerraShiftNetworks, *, max_batch: int) -> Algorithm:
+        return make_ippo(networks, self, max_batch=max_batch)
 
 
 @dataclass
@@ -187,19 +297,14 @@ def _team_value_per_agent() -> TensorDictModule:
     )
 
 
-def _value_normalizer(config: TrainConfig, device: torch.device) -> ValueNormalizer | None:
+def _value_normalizer(config: LossConfig, device: torch.device) -> ValueNormalizer | None:
     if not config.normalize_value:
         return None
     synchronize = distributed.world_size() > 1  # one set of return statistics for every rank
     return ValueNormalizer(config.value_norm_decay, synchronize=synchronize).to(device)
 
 
-def _max_batch(config: TrainConfig) -> int:
-    """The estimation pass runs no bigger pieces than a training mini-batch: same memory bound."""
-    return math.ceil(config.num_envs / config.minibatches)
-
-
-def make_mapoca(networks: TerraShiftNetworks, config: TrainConfig) -> Algorithm:
+def make_mapoca(networks: TerraShiftNetworks, config: MAPOCAConfig, *, max_batch: int) -> Algorithm:
     """MA-POCA: the centralised value for the returns, counterfactual baselines for the
     advantages."""
     device = next(networks.parameters()).device
@@ -220,7 +325,7 @@ def make_mapoca(networks: TerraShiftNetworks, config: TrainConfig) -> Algorithm:
         ValueEstimators.GAE,
         gamma=config.gamma,
         lmbda=config.lmbda,
-        max_batch=_max_batch(config),
+        max_batch=max_batch,
         reuse_root_values=True,  # collected trajectories: next[t] is the root of t + 1
     )
     return Algorithm(
@@ -237,8 +342,9 @@ def make_mapoca(networks: TerraShiftNetworks, config: TrainConfig) -> Algorithm:
 def _make_ppo(
     loss_class: type[MAPPOLoss],
     networks: TerraShiftNetworks,
-    config: TrainConfig,
+    config: LossConfig,
     *,
+    max_batch: int,
     critic: TensorDictModule,
     critics: list[nn.Module],
     algorithm_networks: nn.ModuleDict,
@@ -275,7 +381,7 @@ def _make_ppo(
     estimate = EmbeddingCriticEstimate(
         loss,
         TensorDictSequential(networks.trunk, critic),
-        max_batch=_max_batch(config),
+        max_batch=max_batch,
         value_normalizer=normalizer,
     )
     return Algorithm(
@@ -289,24 +395,25 @@ def _make_ppo(
     )
 
 
-def make_mappo(networks: TerraShiftNetworks, config: TrainConfig) -> Algorithm:
+def make_mappo(networks: TerraShiftNetworks, config: MAPPOConfig, *, max_batch: int) -> Algorithm:
     """MAPPO: clipped PPO with the centralised value V(s) as every agent's value."""
     critic = TensorDictSequential(networks.value_head, _team_value_per_agent())
     return _make_ppo(
         MAPPOLoss,
         networks,
         config,
+        max_batch=max_batch,
         critic=critic,
         critics=[networks.value_head],
         algorithm_networks=nn.ModuleDict(),
     )
 
 
-def make_ippo(networks: TerraShiftNetworks, config: TrainConfig) -> Algorithm:
+def make_ippo(networks: TerraShiftNetworks, config: IPPOConfig, *, max_batch: int) -> Algorithm:
     """IPPO: clipped PPO with a value per agent on the agent's own embedding."""
     if networks.config is None:
         raise ValueError(
-            "train.algo=ippo sizes its per-agent value head by the networks' config: build the "
+            "algo=ippo sizes its per-agent value head by the networks' config: build the "
             "networks with make_terrashift_networks (or pass config= to TerraShiftNetworks)"
         )
     device = next(networks.parameters()).device
@@ -315,15 +422,14 @@ def make_ippo(networks: TerraShiftNetworks, config: TrainConfig) -> Algorithm:
         IPPOLoss,
         networks,
         config,
+        max_batch=max_batch,
         critic=head,
         critics=[head],
         algorithm_networks=nn.ModuleDict({"agent_value_head": head}),
     )
 
 
-ALGORITHMS: dict[str, Callable[[TerraShiftNetworks, TrainConfig], Algorithm]] = {
-    "mapoca": make_mapoca,
-    "mappo": make_mappo,
-    "ippo": make_ippo,
+ALGORITHMS: dict[str, type[LossConfig]] = {
+    config.algo: config for config in (MAPOCAConfig, MAPPOConfig, IPPOConfig)
 }
-"""``train.algo`` -> the function that builds the algorithm from the networks and the config."""
+"""``algo`` -> the algorithm's loss settings, which build it (:meth:`LossConfig.make`)."""

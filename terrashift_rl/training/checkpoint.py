@@ -1,4 +1,12 @@
-"""Checkpoints written atomically and loaded without running code.
+"""What a checkpoint holds and must match, written atomically and loaded without running code.
+
+A checkpoint holds the weights, configs and counters that evaluation and finetuning read
+(:data:`WEIGHTS_KEYS`, :func:`weights_state`); ``last.pt`` also the trainer's whole state, the
+logger's run and the best reward's window (:data:`RESUME_KEYS`, :func:`last_state`).
+:func:`check_resumable` says whether a run's settings continue a checkpoint, and
+:func:`check_action_mode` whether a policy's actions mean the same in a scene. Every loaded
+checkpoint passes :func:`upgrade`, the one converter of checkpoints written before the current
+layout.
 
 A run killed mid-write keeps the previous checkpoint. Loading uses ``torch.load`` with
 ``weights_only=True``: a checkpoint may hold tensors, numbers, strings, lists and dicts, nothing
@@ -10,6 +18,8 @@ and rebuilt on loading.
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import os
 import pickle
 import re
@@ -18,10 +28,30 @@ import time
 import zipfile
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+
+from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.training.algorithms import ALGORITHMS
+from terrashift_rl.training.settings import TrainConfig, override
+
+if TYPE_CHECKING:
+    from terrashift_rl.training.trainer import OnPolicyTrainer
+
+WEIGHTS_KEYS = ("networks", "env_config", "model_config", "env_steps")
+"""What evaluate.py and finetuning read (:func:`weights_state`)."""
+RESUME_KEYS = (*WEIGHTS_KEYS, "optimizer", "train_config", "simulator", "carry")
+"""What resuming reads besides (:func:`last_state`)."""
+EXECUTION_SETTINGS = ("bf16", "tf32", "compile", "cuda_graphs", "deterministic")
+"""Training settings of how the networks execute, not what they learn: a run may resume with
+other values."""
+INITIALISATION_SETTINGS = ("initial_action_mean",)
+"""Model settings that only set the initial weights, which a checkpoint's weights replace."""
+RETIRED_SETTINGS = {"model_config": ("policy_output_gain",)}
+"""Settings that earlier checkpoints hold and that are no longer settings (they only set
+initial weights, so a checkpoint's weights do not depend on them)."""
 
 _TENSORDICT = "__tensordict__"
 """Marks a tensordict stored as plain tensors: ``{_TENSORDICT: {batch_size, entries}}``."""
@@ -101,7 +131,159 @@ def load_checkpoint(
     missing = [key for key in required if key not in state]
     if missing:
         raise ValueError(f"checkpoint {path} lacks {missing}; it holds {list(state)}")
-    return {key: _rebuilt(value) for key, value in state.items()}
+    return upgrade({key: _rebuilt(value) for key, value in state.items()})
+
+
+_RENAMED = {"value_clip_start": "clip_value_start", "value_clip_end": "clip_value_end"}
+
+
+def upgrade(state: dict[str, Any]) -> dict[str, Any]:
+    """A checkpoint in the current layout, from one written by an earlier version: the one
+    converter of old checkpoints, applied to every loaded one (a current one passes unchanged).
+
+    - ``algo`` and ``algorithm_networks``: absent before the algorithms existed, MA-POCA's.
+    - ``env_config.action_mode``: absent before action modes existed, the paper's ``delta``.
+    - ``train_config``: one flat dict before the loss settings became the algorithm's own; its
+      loss settings move to ``train_config["loss"]``, those renamed since (``value_clip_*``)
+      take their names now, and a setting the checkpoint predates takes its default then.
+    - ``best``: absent before ``best.pt`` existed, an empty window.
+    - :data:`RETIRED_SETTINGS` are dropped.
+
+    Example:
+        >>> old = {"networks": {}, "env_config": {}, "train_config": {"value_clip_start": 0.2}}
+        >>> new = upgrade(old)
+        >>> new["algo"], new["env_config"]["action_mode"], new["train_config"]["loss"]["gamma"]
+        ('mapoca', 'delta', 0.95)
+        >>> new["train_config"]["loss"]["clip_value_start"]
+        0.2
+    """
+    if "networks" not in state:  # not a training checkpoint
+        return state
+    state = dict(state)
+    train = state.get("train_config")
+    algo = state.setdefault("algo", (train or {}).get("algo", "mapoca"))
+    state.setdefault("algorithm_networks", {})
+    if "env_config" in state:
+        state["env_config"] = {"action_mode": "delta", **state["env_config"]}
+    if "optimizer" in state:
+        state.setdefault("best", {"reward": -math.inf, "recent": []})
+    for name, retired in RETIRED_SETTINGS.items():
+        if name in state:
+            state[name] = {key: value for key, value in state[name].items() if key not in retired}
+    if train is not None and "loss" not in train:
+        flat = {_RENAMED.get(key, key): value for key, value in train.items() if key != "algo"}
+        defaults = dataclasses.asdict(TrainConfig(loss=ALGORITHMS[algo]()))
+        state["train_config"] = {
+            **{key: flat.get(key, value) for key, value in defaults.items() if key != "loss"},
+            "loss": {key: flat.get(key, value) for key, value in defaults["loss"].items()},
+        }
+    return state
+
+
+# --- what a checkpoint holds and must match -------------------------------------------------------
+def weights_state(trainer: OnPolicyTrainer, configs: dict, **extra: Any) -> dict:
+    """The networks, configs and counters: what evaluate.py and finetuning read."""
+    return {
+        **trainer.weights_state_dict(),
+        **configs,
+        "iteration": trainer.iteration,
+        "env_steps": trainer.env_steps,
+        **extra,
+    }
+
+
+def last_state(
+    trainer: OnPolicyTrainer, configs: dict, run_id: str | None, best: dict[str, Any]
+) -> dict:
+    """What ``last.pt`` holds: the trainer's state, the configs, the logger's run and the best
+    reward's window. In a data-parallel run every rank calls it (a collective)."""
+    return {**trainer.state_dict(), **configs, "logger_run_id": run_id, "best": best}
+
+
+def update_best(
+    best: dict[str, Any],
+    reward: float,
+    window: int,
+    trainer: OnPolicyTrainer,
+    configs: dict,
+    path: Path,
+) -> None:
+    """Adds an iteration's reward per decision to ``best``'s window; when the window's mean is
+    the highest yet, writes the networks and configs to ``path`` (what evaluate.py reads)."""
+    best["recent"] = [*best["recent"], reward][-window:]
+    mean = sum(best["recent"]) / len(best["recent"])
+    if len(best["recent"]) == window and mean > best["reward"]:
+        best["reward"] = mean
+        save_checkpoint(weights_state(trainer, configs, mean_reward_per_decision=mean), path)
+
+
+def network_settings(model_config: dict) -> dict:
+    """The model settings a checkpoint's weights depend on (``INITIALISATION_SETTINGS`` aside)."""
+    return {k: v for k, v in model_config.items() if k not in INITIALISATION_SETTINGS}
+
+
+def check_action_mode(checkpoint: dict, scene: TerraShiftConfig, key: str) -> None:
+    """Raises ``ValueError`` when the policy of ``checkpoint`` (named by the setting ``key``)
+    was trained with other actions than ``scene``'s, where its actions would mean something
+    else."""
+    trained = checkpoint["env_config"]["action_mode"]
+    if trained != scene.action_mode:
+        raise ValueError(
+            f"{key} was trained with env.action_mode={trained} and this scene has "
+            f"{scene.action_mode}, where its actions mean something else; set "
+            f"env.action_mode={trained}"
+        )
+
+
+def check_resumable(resume: dict, configs: dict, *, path: str | Path) -> None:
+    """Raises unless the checkpoint ``resume`` (at ``path``) was trained with ``configs``
+    (``env_config``, ``model_config``, ``train_config``: env, model, train and loss settings,
+    execution and initialisation settings aside), naming the overrides that would continue it."""
+    differ = []
+    train, saved_train = dict(configs["train_config"]), dict(resume["train_config"])
+    loss, saved_loss = train.pop("loss"), saved_train.pop("loss")
+    if resume["algo"] != configs["algo"]:
+        differ.append(f"algo={resume['algo']}")
+        loss = saved_loss  # the other algorithm's settings are compared once it is set
+    for group, now, saved in (
+        ("env", configs["env_config"], resume["env_config"]),
+        ("model", network_settings(configs["model_config"]), resume["model_config"]),
+        ("train", train, saved_train),
+        ("loss", loss, saved_loss),
+    ):
+        for key, value in now.items():
+            if saved.get(key) != value and key not in EXECUTION_SETTINGS:
+                differ.append(override(f"{group}.{key}", saved.get(key)))
+    if differ:
+        raise ValueError(
+            f"run.resume={path} was trained with other settings; add {' '.join(differ)} to "
+            "continue it (or start a new run from its weights with run.pretrained)"
+        )
+
+
+def world_size_change(saved: int, now: int) -> str:
+    """What resuming a checkpoint of ``saved`` processes with ``now`` processes does.
+
+    Example:
+        >>> world_size_change(4, 2).split("over, ")[1]
+        'the environments of ranks 0-1 continue, those of ranks 2-3 are left behind'
+        >>> world_size_change(1, 2).split("over, ")[1]
+        'the environments of rank 0 continue, and new ones from run.seed + rank for rank 1'
+    """
+
+    def ranks(first: int, last: int) -> str:
+        return f"rank {first}" if first == last else f"ranks {first}-{last}"
+
+    change = (
+        f"and new ones from run.seed + rank for {ranks(saved, now - 1)}"
+        if now > saved
+        else f"those of {ranks(now, saved - 1)} are left behind"
+    )
+    return (
+        f"the checkpoint was trained by {saved} process(es) and continues with {now}: the "
+        "weights, optimiser, return statistics and counters carry over, the environments of "
+        f"{ranks(0, min(saved, now) - 1)} continue, {change}"
+    )
 
 
 def remove_stale_temporaries(folder: str | Path) -> list[Path]:

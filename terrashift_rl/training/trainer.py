@@ -27,7 +27,7 @@ import math
 import os
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from typing import Any
 
 import torch
@@ -42,286 +42,21 @@ from terrashift_rl.modules import TerraShiftNetworks, keys
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.sim.types import ACTION_NAMES
 from terrashift_rl.training import distributed
-from terrashift_rl.training.algorithms import ALGORITHMS
 from terrashift_rl.training.graphs import CudaGraphed
 from terrashift_rl.training.schedules import LinearSchedule
+from terrashift_rl.training.settings import TrainConfig
 
 # Collection writes these as by-products of acting; every pass of the update recomputes them
 # with the current parameters, so the batch does not keep them. (It keeps the distribution's
 # parameters, 12 numbers per agent-step, for `concentration_metrics`.)
 _RECOMPUTED_KEYS = (keys.AGENT_EMBEDDING,)
 
-LR_SCHEDULES = ("linear", "adaptive")
-"""Values of :attr:`TrainConfig.lr_schedule`."""
 _KL_STEP = 1.5
 """Factor by which the adaptive schedule moves the learning rates after a mini-batch."""
 _RANK_KEYS = ("torch_rng", "cuda_rng", "simulator", "carry")
 """What each process of a data-parallel run holds of its own in a checkpoint."""
 _SUMMED_METRICS = ("episodes", "env_steps_per_s", "collection_steps_per_s")
 """Metrics of a data-parallel iteration that add up over the processes (the others average)."""
-
-
-@dataclass
-class TrainConfig:
-    """Hyper-parameters of :class:`OnPolicyTrainer` (a Hydra structured config).
-
-    Start/end pairs are linear schedules over ``schedule_iterations`` updates. The defaults
-    (2,048 environments, 2 epochs of 8 mini-batches, learning rates 1e-3 / 6e-4, a constant
-    entropy coefficient of 0.002, schedules over 1,000 updates) suit thousands of environments
-    on one GPU; Table 1's (4 epochs of small mini-batches from 8 environments, rates 1e-4 / 2e-4
-    over 10,000 updates, entropy 0.005 -> 0.001) suit them poorly (docs/experiments.md,
-    docs/results.md).
-    """
-
-    algo: str = "mapoca"
-    """The algorithm, a key of :data:`~terrashift_rl.training.algorithms.ALGORITHMS`:
-    ``mapoca``, ``mappo`` or ``ippo``. Every other setting means the same for each, except
-    ``baseline_coeff`` (MA-POCA's baselines only) and the teacher (MA-POCA only)."""
-    num_envs: int = 2048
-    """Environments stepped together."""
-    steps_per_iteration: int = 32
-    """Decisions collected per environment per iteration; also the GRU's training sequence."""
-    epochs: int = 2
-    """Passes over each collected batch."""
-    minibatches: int = 8
-    """Mini-batches per epoch (each holds num_envs / minibatches whole sequences)."""
-    gamma: float = 0.95
-    """Discount."""
-    lmbda: float = 0.92
-    """GAE lambda."""
-    lr_trunk_policy: float = 1.0e-3
-    """AdamW learning rate of the trunk and the policy head at the start (3e-4 barely moves
-    a Beta policy per update)."""
-    lr_value_baseline: float = 6.0e-4
-    """AdamW learning rate of the critics at the start (MA-POCA's value and baseline heads,
-    MAPPO's value head, IPPO's per-agent value head)."""
-    lr_schedule: str = "linear"
-    """How the trunk and policy's learning rate moves: ``linear`` from its start to
-    ``lr_end_factor`` times it over ``schedule_iterations`` updates; ``adaptive`` so that the
-    policy's KL divergence per update stays near ``desired_kl`` (RSL-RL's rule: after each
-    mini-batch's KL estimate, divide by 1.5 above twice the target, multiply by 1.5 below half
-    of it), within [lr_min, lr_max]. The critics' rate is linear either way."""
-    lr_end_factor: float = 0.1
-    """Linear schedules end at this fraction of their learning rate's start."""
-    desired_kl: float = 0.01
-    """With ``lr_schedule=adaptive``, the KL divergence per update the learning rates aim at."""
-    lr_min: float = 1.0e-5
-    """With ``lr_schedule=adaptive``, the trunk and policy's smallest learning rate."""
-    lr_max: float = 1.0e-2
-    """With ``lr_schedule=adaptive``, the trunk and policy's largest learning rate."""
-    weight_decay: float = 0.01
-    """AdamW weight decay."""
-    clip_epsilon_start: float = 0.2
-    """Clip range of the policy's probability ratio (the loss's ``clip_epsilon``) at the start."""
-    clip_epsilon_end: float = 0.1
-    """Clip range of the probability ratio after ``schedule_iterations`` updates."""
-    entropy_coeff_start: float = 0.002
-    """Weight of the entropy bonus (the loss's ``entropy_coeff``) at the start."""
-    entropy_coeff_end: float = 0.002
-    """Weight of the entropy bonus after ``schedule_iterations`` updates."""
-    clip_value_start: float = 0.3
-    """Clip range of the critics' estimates around those at collection (the loss's
-    ``clip_value``, as in torchrl's ``ClipPPOLoss``) at the start."""
-    clip_value_end: float = 0.1
-    """Clip range of the critics' estimates after ``schedule_iterations`` updates."""
-    max_grad_norm_start: float = 5.0
-    """Gradient-norm clip of every update at the start."""
-    max_grad_norm_end: float = 0.5
-    """Gradient-norm clip after ``schedule_iterations`` updates."""
-    schedule_iterations: int = 1000
-    """Updates over which every schedule runs from start to end."""
-    teacher_coeff: float = 0.0
-    """Weight, at the start, of the pull of the policy's mean action towards the scripted
-    heuristic's action (:class:`~terrashift_rl.envs.baselines.ScriptedHeuristicPolicy`, computed
-    on every collected step); 0 trains without a teacher."""
-    teacher_coeff_end: float = 0.0
-    """The teacher's weight after ``teacher_iterations`` updates, held from then on; 0 lets
-    the policy learn from the reward alone."""
-    teacher_iterations: int = 200
-    """Updates over which the teacher's weight falls linearly to ``teacher_coeff_end``."""
-    critic_warmup_iterations: int = 0
-    """Iterations at the start of a run that train only the critics, with the
-    trunk and policy frozen: a pretrained policy then meets a new scene with critics fitted to
-    it (and return statistics re-estimated) instead of advantages from miscalibrated ones."""
-    value_coeff: float = 1.0
-    """Weight of the value loss."""
-    baseline_coeff: float = 0.5
-    """Weight of the baseline loss (MA-POCA)."""
-    normalize_value: bool = True
-    """Train the critics on running-normalised returns (ValueNormalizer)."""
-    value_norm_decay: float = 0.99
-    """Weight of the old return statistics at each iteration."""
-    bf16: bool = False
-    """Run the networks under bfloat16 autocast on CUDA."""
-    tf32: bool = True
-    """On CUDA, let float32 matrix products use TensorFloat-32 tensor cores (sets the
-    process-wide ``torch.backends.cuda.matmul.allow_tf32``)."""
-    stagger_episodes: bool = True
-    """Spread the first episodes' step limits over an episode's length, so that environments do
-    not all reset at the same decision
-    (:meth:`~terrashift_rl.envs.terrashift.TerraShiftEnv.stagger_episodes`)."""
-    compile: bool = False
-    """``torch.compile`` the networks (all but the GRU's loop over time); the first iterations
-    then include compilation. With ``cuda_graphs`` the compiled kernels replay in the graphs."""
-    cuda_graphs: bool = True
-    """On CUDA, replay the actor's collection step and the mini-batch update (loss, backward,
-    clipping, AdamW) as CUDA graphs (:class:`~terrashift_rl.training.graphs.CudaGraphed`);
-    ignored on other devices."""
-    deterministic: bool = False
-    """Use only deterministic algorithms (sets the process-wide
-    ``torch.use_deterministic_algorithms(True)`` and ``CUBLAS_WORKSPACE_CONFIG`` if unset), so
-    that a seeded run on CUDA repeats exactly on the same machine and software; on the CPU runs
-    repeat without it."""
-
-    def validate(self) -> None:
-        """Raises ``ValueError`` naming the first setting of the wrong type or outside its
-        allowed range, or an impossible combination, saying what to change."""
-        if not isinstance(self.algo, str) or self.algo not in ALGORITHMS:
-            choices = ", ".join(list(ALGORITHMS)[:-1]) + f" or {list(ALGORITHMS)[-1]}"
-            raise ValueError(f"train.algo must be one of {choices}, got {self.algo!r}")
-        for name in (
-            "num_envs",
-            "steps_per_iteration",
-            "epochs",
-            "minibatches",
-            "schedule_iterations",
-            "teacher_iterations",
-        ):
-            _check_integer(name, getattr(self, name), minimum=1)
-        _check_integer("critic_warmup_iterations", self.critic_warmup_iterations, minimum=0)
-        for name in (
-            "lr_trunk_policy",
-            "lr_value_baseline",
-            "lr_end_factor",
-            "desired_kl",
-            "lr_min",
-            "lr_max",
-            "clip_value_start",
-            "clip_value_end",
-            "max_grad_norm_start",
-            "max_grad_norm_end",
-        ):
-            _check_number(name, getattr(self, name), low=0.0, low_open=True)
-        for name in (
-            "weight_decay",
-            "entropy_coeff_start",
-            "entropy_coeff_end",
-            "teacher_coeff",
-            "teacher_coeff_end",
-            "value_coeff",
-            "baseline_coeff",
-        ):
-            _check_number(name, getattr(self, name), low=0.0)
-        for name in ("clip_epsilon_start", "clip_epsilon_end"):
-            _check_number(
-                name, getattr(self, name), low=0.0, high=1.0, low_open=True, high_open=True
-            )
-        _check_number("gamma", self.gamma, low=0.0, high=1.0, low_open=True)
-        _check_number("lmbda", self.lmbda, low=0.0, high=1.0)
-        _check_number("value_norm_decay", self.value_norm_decay, low=0.0, high=1.0, high_open=True)
-        for name in (
-            "normalize_value",
-            "bf16",
-            "tf32",
-            "stagger_episodes",
-            "compile",
-            "cuda_graphs",
-            "deterministic",
-        ):
-            value = getattr(self, name)
-            if not isinstance(value, bool):
-                raise ValueError(f"{setting_name(name)} must be true or false, got {value!r}")
-        if self.lr_schedule not in LR_SCHEDULES:
-            raise ValueError(
-                f"train.lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}"
-            )
-        if self.minibatches > self.num_envs:
-            raise ValueError(
-                f"train.minibatches ({self.minibatches}) exceeds train.num_envs "
-                f"({self.num_envs}): a mini-batch holds whole environment sequences, so use at "
-                f"most {self.num_envs} mini-batches or more environments"
-            )
-        if self.algo != "mapoca" and self.teacher_coeff:
-            raise ValueError(
-                f"loss.teacher_coeff is {self.teacher_coeff} but train.algo={self.algo} has no "
-                "teacher term (only mapoca has): set loss.teacher_coeff=0 or train.algo=mapoca"
-            )
-        if self.algo != "mapoca" and not self.value_coeff:
-            raise ValueError(
-                f"loss.value_coeff is 0 but train.algo={self.algo} learns its advantages from "
-                "the value: set loss.value_coeff > 0"
-            )
-        if self.teacher_coeff_end and not self.teacher_coeff:
-            raise ValueError(
-                f"loss.teacher_coeff_end is {self.teacher_coeff_end} but loss.teacher_coeff "
-                f"is 0 (no teacher): set loss.teacher_coeff > 0 to train with a teacher"
-            )
-        if self.lr_schedule == "adaptive" and not (
-            self.lr_min <= self.lr_trunk_policy <= self.lr_max
-        ):
-            raise ValueError(
-                f"train.lr_trunk_policy ({self.lr_trunk_policy}) must lie in [train.lr_min, "
-                f"train.lr_max] = [{self.lr_min}, {self.lr_max}] with train.lr_schedule=adaptive"
-            )
-
-
-LOSS_SETTINGS = (
-    "gamma",
-    "lmbda",
-    "clip_epsilon_start",
-    "clip_epsilon_end",
-    "entropy_coeff_start",
-    "entropy_coeff_end",
-    "clip_value_start",
-    "clip_value_end",
-    "value_coeff",
-    "baseline_coeff",
-    "normalize_value",
-    "value_norm_decay",
-    "teacher_coeff",
-    "teacher_coeff_end",
-    "teacher_iterations",
-)
-"""The :class:`TrainConfig` fields that the recipes set in their ``loss`` config group; the
-others are the ``train`` group's."""
-
-
-def setting_name(field: str) -> str:
-    """A :class:`TrainConfig` field as the recipes' config names it.
-
-    Example:
-        >>> setting_name("num_envs"), setting_name("gamma")
-        ('train.num_envs', 'loss.gamma')
-    """
-    return f"{'loss' if field in LOSS_SETTINGS else 'train'}.{field}"
-
-
-def _check_integer(name: str, value: Any, *, minimum: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise ValueError(f"{setting_name(name)} must be an integer >= {minimum}, got {value!r}")
-
-
-def _check_number(
-    name: str,
-    value: Any,
-    *,
-    low: float,
-    high: float = math.inf,
-    low_open: bool = False,
-    high_open: bool = False,
-) -> None:
-    number = not isinstance(value, bool) and isinstance(value, int | float)
-    if not (
-        number
-        and math.isfinite(value)
-        and (low < value if low_open else low <= value)
-        and (value < high if high_open else value <= high)
-    ):
-        closing = ")" if high_open or high == math.inf else "]"
-        interval = f"{'(' if low_open else '['}{low:g}, {high:g}{closing}"
-        raise ValueError(
-            f"{setting_name(name)} must be a finite number in {interval}, got {value!r}"
-        )
 
 
 def make_training_env(
@@ -359,15 +94,20 @@ class OnPolicyTrainer:
         self.networks = networks
         self.config = config
         self.device = env.device
-        self.algorithm = ALGORITHMS[config.algo](networks, config)
+        # the estimation pass runs no bigger pieces than a training mini-batch: same memory bound
+        max_batch = math.ceil(config.num_envs / config.minibatches)
+        self.algorithm = config.loss.make(networks, max_batch=max_batch)
         self.loss = self.algorithm.loss
         distributed.broadcast_from_main([networks, self.algorithm.networks])
         if config.compile:
             networks.compile_networks()
             for head in self.algorithm.networks.values():
                 head.module.compile()
+        loss = config.loss
         self.teacher = (
-            ScriptedHeuristicPolicy(env.base_env.config) if config.teacher_coeff else None
+            ScriptedHeuristicPolicy(env.base_env.config)
+            if getattr(loss, "teacher_coeff", 0.0)  # MA-POCA's alone
+            else None
         )
         policy_parameters = [*networks.trunk.parameters(), *networks.policy_head.parameters()]
         self._policy_parameters = policy_parameters
@@ -400,18 +140,17 @@ class OnPolicyTrainer:
         n = config.schedule_iterations
         self.schedules = {
             "lr_factor": LinearSchedule(1.0, config.lr_end_factor, n),
-            "clip_epsilon": LinearSchedule(config.clip_epsilon_start, config.clip_epsilon_end, n),
-            "entropy_coeff": LinearSchedule(
-                config.entropy_coeff_start, config.entropy_coeff_end, n
-            ),
-            "clip_value": LinearSchedule(config.clip_value_start, config.clip_value_end, n),
+            "clip_epsilon": LinearSchedule(loss.clip_epsilon_start, loss.clip_epsilon_end, n),
+            "entropy_coeff": LinearSchedule(loss.entropy_coeff_start, loss.entropy_coeff_end, n),
+            "clip_value": LinearSchedule(loss.clip_value_start, loss.clip_value_end, n),
             "max_grad_norm": LinearSchedule(
                 config.max_grad_norm_start, config.max_grad_norm_end, n
             ),
-            "teacher_coeff": LinearSchedule(
-                config.teacher_coeff, config.teacher_coeff_end, config.teacher_iterations
-            ),
         }
+        if self.teacher is not None:
+            self.schedules["teacher_coeff"] = LinearSchedule(
+                loss.teacher_coeff, loss.teacher_coeff_end, loss.teacher_iterations
+            )
         self.iteration = 0
         self.env_steps = 0
         self._carry: TensorDictBase | None = None
@@ -593,13 +332,13 @@ class OnPolicyTrainer:
         data-parallel run each rank takes its own environments and random states from it; a rank
         the checkpoint's run did not have (it had fewer processes) keeps its freshly seeded ones
         and starts new episodes."""
-        algo = _algo_of(state)
+        algo = state["algo"]
         if algo != self.config.algo:
             raise ValueError(
-                f"the checkpoint was trained with train.algo={algo}; resume with the same setting"
+                f"the checkpoint was trained with algo={algo}; resume with the same setting"
             )
         self.networks.load_state_dict(state["networks"])
-        self.algorithm.networks.load_state_dict(state.get("algorithm_networks", {}))
+        self.algorithm.networks.load_state_dict(state["algorithm_networks"])
         self.optimizer.load_state_dict(state["optimizer"])
         normalizer = self.algorithm.value_normalizer
         if (normalizer is None) != (state.get("value_normalizer") is None):
@@ -642,10 +381,11 @@ class OnPolicyTrainer:
         algorithm's own networks where the checkpoint was trained with the same algorithm;
         otherwise these keep their fresh initialisation. The optimiser, the schedules and the
         return statistics start afresh. ``state`` is a :meth:`weights_state_dict` or a
-        :meth:`state_dict`, also one written before ``algo`` existed (MA-POCA's)."""
+        :meth:`state_dict` (a checkpoint of an earlier layout converted by
+        :func:`~terrashift_rl.training.checkpoint.upgrade`)."""
         self.networks.load_state_dict(state["networks"])
-        if _algo_of(state) == self.config.algo:
-            self.algorithm.networks.load_state_dict(state.get("algorithm_networks", {}))
+        if state["algo"] == self.config.algo:
+            self.algorithm.networks.load_state_dict(state["algorithm_networks"])
 
     # --- helpers ---------------------------------------------------------------------------
     def _adapt_learning_rate(self, kl: torch.Tensor) -> None:
@@ -726,14 +466,6 @@ class OnPolicyTrainer:
 
 MAPOCATrainer = OnPolicyTrainer
 """The trainer's name from when MA-POCA was its only algorithm."""
-
-
-def _algo_of(state: dict[str, Any]) -> str:
-    """The algorithm a checkpoint was trained with; checkpoints from before ``train.algo``
-    existed are MA-POCA's."""
-    if "algo" in state:
-        return state["algo"]
-    return state.get("train_config", {}).get("algo", "mapoca")
 
 
 def episode_metrics(data: TensorDictBase) -> dict[str, float]:

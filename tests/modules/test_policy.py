@@ -136,19 +136,6 @@ def mean_action(config, data, **overrides):
         return networks, networks.actor(data.clone())[keys.ACTION]
 
 
-def test_policy_output_gain_scales_the_initial_action_distribution(small_config, make_batch):
-    data = make_batch((64,))
-    spreads = {}
-    for gain in (1.0, 0.01):
-        _, mean = mean_action(small_config, data, policy_output_gain=gain)
-        spreads[gain] = mean.abs().max().item()
-    # Near zero, every agent's Beta starts at softplus(0) + 1.01 in both concentrations: the
-    # mean action is zero, whatever the observation; at PyTorch's default it is not.
-    assert spreads[0.01] < 2e-3 < 1e-2 < spreads[1.0]
-    with pytest.raises(ValueError, match="policy_output_gain"):
-        dataclasses.replace(small_config, policy_output_gain=-0.5)
-
-
 def test_action_range_widens_the_policys_support_about_the_same_beta(small_config, make_batch):
     data = make_batch((16,))
     actions = {}
@@ -158,7 +145,7 @@ def test_action_range_widens_the_policys_support_about_the_same_beta(small_confi
         assert (dist.low, dist.high) == (-span, span)
     # the same weights and Beta, its support stretched about zero
     torch.testing.assert_close(actions[2.0], 2.0 * actions[1.0])
-    with pytest.raises(ValueError, match="action_range must be >= 1"):
+    with pytest.raises(ValueError, match="model.action_range must be a finite number >= 1"):
         dataclasses.replace(small_config, action_range=0.5)
 
 
@@ -169,10 +156,17 @@ def test_initial_action_mean_sets_the_untrained_policys_mean_action(
     data = make_batch((4,))
     wanted = [0.0, 0.3, 0.0, -0.1, 0.0, -0.9]
     overrides = {"distribution": distribution, "action_range": span}
-    # with zero output weights, the biases alone set the distribution: exactly the mean asked
-    _, mean = mean_action(
-        small_config, data, initial_action_mean=wanted, policy_output_gain=0.0, **overrides
-    )
+    # with zero output weights and the default biases removed, the shift alone sets the
+    # distribution: exactly the mean asked
+    networks, _ = mean_action(small_config, data, initial_action_mean=wanted, **overrides)
+    default, _ = mean_action(small_config, data, **overrides)
+    head, centred_head = networks.policy_head.module, default.policy_head.module
+    with torch.no_grad():
+        for name, layer in head.named_children():
+            if isinstance(layer, torch.nn.Linear) and name.endswith("_head"):
+                layer.weight.zero_()
+                layer.bias.sub_(getattr(centred_head, name).bias)
+        mean = networks.actor(data.clone())[keys.ACTION]
     torch.testing.assert_close(mean, torch.tensor(wanted).expand_as(mean))
     # at the default gain, the same shift of the same initial weights
     _, centred = mean_action(small_config, data, **overrides)
@@ -184,8 +178,8 @@ def test_initial_action_mean_sets_the_untrained_policys_mean_action(
 @pytest.mark.parametrize(
     ("value", "message"),
     [
-        ([0.0, 0.0, 0.0, -1.0, 0.0, 0.0], "initial_action_mean must hold finite values"),
-        ([0.0, 0.0, 0.0, math.nan, 0.0, 0.0], "initial_action_mean must hold finite values"),
+        ([0.0, 0.0, 0.0, -1.0, 0.0, 0.0], "model.initial_action_mean must hold values inside"),
+        ([0.0, 0.0, 0.0, math.nan, 0.0, 0.0], "initial_action_mean must be a list of finite"),
         ([0.0, -0.1], r"one value per action dimension \(6\), got 2"),
     ],
 )

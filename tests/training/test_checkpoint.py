@@ -141,3 +141,26 @@ def test_only_temporary_files_left_untouched_are_removed(tmp_path):
     os.utime(stale, (old, old))
     assert remove_stale_temporaries(tmp_path) == [stale]
     assert not stale.exists() and fresh.exists() and last.exists()
+
+
+def test_the_converter_brings_an_earlier_layout_to_the_current_one_and_leaves_that_alone():
+    from terrashift_rl.training.checkpoint import upgrade
+
+    old = {
+        "networks": {},
+        "env_config": {"grid_size": 15},
+        "model_config": {"embed_dim": 32, "policy_output_gain": 0.01},  # a retired setting
+        "train_config": {"algo": "mappo", "num_envs": 8, "gamma": 0.9, "value_clip_end": 0.2},
+        "optimizer": {},
+    }
+    new = upgrade(old)
+    assert new["algo"] == "mappo" and new["algorithm_networks"] == {}
+    assert new["env_config"] == {"action_mode": "delta", "grid_size": 15}
+    assert new["model_config"] == {"embed_dim": 32}
+    assert new["train_config"]["num_envs"] == 8 and "gamma" not in new["train_config"]
+    assert new["train_config"]["loss"]["gamma"] == 0.9
+    assert new["train_config"]["loss"]["clip_value_end"] == 0.2
+    assert "teacher_coeff" not in new["train_config"]["loss"]  # MAPPO has none
+    assert new["best"] == {"reward": -float("inf"), "recent": []}
+    assert upgrade(new) == new
+    assert upgrade({"step": 1}) == {"step": 1}  # not a training checkpoint

@@ -2,6 +2,7 @@
 resume, with identical parameters after every update; the recipes under torchrun; the
 process-group helpers in a single process."""
 
+import importlib.util
 import os
 import socket
 import subprocess
@@ -14,9 +15,20 @@ import torch.multiprocessing as mp
 from hydra import compose, initialize_config_dir
 
 from terrashift_rl.training import OnPolicyTrainer, distributed, load_checkpoint
-from terrashift_rl.training.run import register_config_schemas, run_training
 
 ROOT = Path(__file__).resolve().parents[2]
+
+
+def pretraining_recipe():
+    """recipes/mapoca_pretrain.py as a module (it registers the config schemas)."""
+    spec = importlib.util.spec_from_file_location(
+        "mapoca_pretrain", ROOT / "recipes" / "mapoca_pretrain.py"
+    )
+    recipe = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(recipe)
+    return recipe
+
+
 CONFIGS = ROOT / "recipes" / "configs"
 WORLD_SIZE = 2
 FRAMES = 4 * 8  # the smoke config's environments x steps per iteration, per process
@@ -41,7 +53,7 @@ def train_resume_and_record(rank: int, port: int, folder: Path) -> None:
         LOCAL_WORLD_SIZE=str(WORLD_SIZE),
     )
     torch.set_num_threads(1)
-    # joined once: run_training stays in a group it finds and leaves one it joined
+    # joined once: the recipe's train() stays in a group it finds and leaves one it joined
     distributed.init_process_group("cpu", key="run.device")
     updates, trainers = [], []
     train_iteration = OnPolicyTrainer.train_iteration
@@ -57,7 +69,7 @@ def train_resume_and_record(rank: int, port: int, folder: Path) -> None:
         return metrics
 
     OnPolicyTrainer.train_iteration = recorded
-    register_config_schemas()
+    recipe = pretraining_recipe()
     runs = {
         "a": [f"run.total_env_steps={3 * WORLD_SIZE * FRAMES}"],
         "b": [f"run.total_env_steps={WORLD_SIZE * FRAMES}"],
@@ -71,7 +83,7 @@ def train_resume_and_record(rank: int, port: int, folder: Path) -> None:
             overrides = [*overrides, "run.eval_every=2", "train.lr_schedule=adaptive"]
             cfg = compose(config_name="smoke", overrides=overrides)
             (folder / name).mkdir(exist_ok=True)  # as Hydra makes it
-            run_training(cfg, run_dir=folder / name)
+            recipe.train(cfg, run_dir=folder / name)
     # each exchange on values that differ between the ranks: rank r has r
     trainers[-1]._adapt_learning_rate(torch.tensor(float(rank)))  # a KL of 0.5: down by 1.5
     weight = torch.nn.Parameter(torch.zeros(2))

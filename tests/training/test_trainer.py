@@ -17,6 +17,7 @@ from terrashift_rl.modules import TerraShiftModelConfig, keys, make_terrashift_n
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.sim.types import ACTION_NAMES
 from terrashift_rl.training import (
+    ALGORITHMS,
     MAPOCATrainer,
     TrainConfig,
     action_medians,
@@ -24,7 +25,6 @@ from terrashift_rl.training import (
     make_training_env,
 )
 from terrashift_rl.training.graphs import CudaGraphed
-from terrashift_rl.training.trainer import setting_name
 
 ENV = TerraShiftConfig(
     grid_size=8,
@@ -41,6 +41,17 @@ CUDA = torch.device("cuda")
 MODEL = dataclasses.replace(TerraShiftModelConfig.small(), dropout=0.0)
 
 
+def train_config(*, algo: str = "mapoca", **settings) -> TrainConfig:
+    """A :class:`TrainConfig` from the ``train`` and ``loss`` settings of ``algo`` in one
+    list."""
+    loss = ALGORITHMS[algo]
+    names = {field.name for field in dataclasses.fields(loss)}
+    return TrainConfig(
+        **{name: value for name, value in settings.items() if name not in names},
+        loss=loss(**{name: value for name, value in settings.items() if name in names}),
+    )
+
+
 def make_trainer(*, seed: int = 0, model: dict | None = None, **train) -> MAPOCATrainer:
     """A trainer of the small network (with ``model`` overrides) on three environments of
     ``ENV``."""
@@ -48,7 +59,7 @@ def make_trainer(*, seed: int = 0, model: dict | None = None, **train) -> MAPOCA
     networks = make_terrashift_networks(
         dataclasses.replace(TerraShiftModelConfig.small(), **(model or {}))
     )
-    config = TrainConfig(num_envs=3, steps_per_iteration=8, minibatches=1, **train)
+    config = train_config(num_envs=3, steps_per_iteration=8, minibatches=1, **train)
     env = make_training_env(ENV, networks, num_envs=3, device=torch.device("cpu"), seed=seed)
     return MAPOCATrainer(env, networks, config)
 
@@ -62,7 +73,7 @@ def test_values_of_next_states_read_from_the_next_root_are_exact():
     trainer.loss.value_estimator(reused)
     # A second loss on the same networks that runs them on every "next" state.
     trainer.loss.make_value_estimator(
-        ValueEstimators.GAE, gamma=trainer.config.gamma, lmbda=trainer.config.lmbda
+        ValueEstimators.GAE, gamma=trainer.config.loss.gamma, lmbda=trainer.config.loss.lmbda
     )
     plain = data.clone()
     trainer.loss.value_estimator(plain)
@@ -205,22 +216,6 @@ def test_no_teacher_by_default():
     data = trainer.collect()
     assert TEACHER not in data.keys(include_nested=True)
     assert not TEACHER_METRICS & trainer.update(data).keys()
-
-
-@pytest.mark.parametrize(
-    ("field", "value"),
-    [
-        ("teacher_coeff", -1.0),
-        ("teacher_coeff", float("nan")),
-        ("teacher_coeff_end", -1.0),
-        ("teacher_coeff_end", 1.0),  # with no teacher (teacher_coeff 0)
-        ("teacher_iterations", 0),
-    ],
-)
-def test_bad_teacher_settings_are_refused(field, value):
-    TrainConfig().validate()
-    with pytest.raises(ValueError, match=f"loss.{field}"):
-        TrainConfig(**{field: value}).validate()
 
 
 def test_cuda_graphed_refuses_a_tensordict_off_cuda():
@@ -419,68 +414,6 @@ def test_critic_warmup_trains_the_critics_and_leaves_the_policy_untouched():
     assert any(
         not torch.equal(p, policy[name]) for name, p in networks.policy_head.named_parameters()
     )
-
-
-@pytest.mark.parametrize(
-    ("field", "value"),
-    [
-        ("lr_schedule", "cosine"),
-        ("desired_kl", 0.0),
-        ("desired_kl", float("nan")),
-        ("lr_trunk_policy", -1e-4),
-        ("lr_max", float("inf")),
-        ("lr_min", 1.0),  # above lr_trunk_policy, with the adaptive schedule
-        ("critic_warmup_iterations", -1),
-    ],
-)
-def test_bad_learning_rate_settings_are_refused(field, value):
-    with pytest.raises(ValueError, match=f"train.{field}"):
-        TrainConfig(**{"lr_schedule": "adaptive", field: value}).validate()
-
-
-@pytest.mark.parametrize("field", [field.name for field in dataclasses.fields(TrainConfig)])
-def test_every_setting_of_the_wrong_type_is_refused_by_name(field):
-    with pytest.raises(ValueError, match=rf"^{setting_name(field)} .*got 'junk'"):
-        TrainConfig(**{field: "junk"}).validate()
-
-
-@pytest.mark.parametrize(
-    ("field", "value", "allowed"),
-    [
-        # signs
-        ("lr_value_baseline", -1e-4, r"in \(0, inf\)"),
-        ("lr_end_factor", -0.1, r"in \(0, inf\)"),
-        ("max_grad_norm_start", -5.0, r"in \(0, inf\)"),
-        ("value_coeff", -1.0, r"in \[0, inf\)"),
-        ("baseline_coeff", -0.5, r"in \[0, inf\)"),
-        ("weight_decay", -0.01, r"in \[0, inf\)"),
-        ("entropy_coeff_end", -0.001, r"in \[0, inf\)"),
-        # zero
-        ("schedule_iterations", 0, "an integer >= 1"),
-        ("max_grad_norm_end", 0.0, r"in \(0, inf\)"),
-        ("clip_value_start", 0.0, r"in \(0, inf\)"),
-        ("clip_epsilon_end", 0.0, r"in \(0, 1\)"),
-        ("gamma", 0.0, r"in \(0, 1\]"),
-        # NaN and infinity
-        ("entropy_coeff_start", float("nan"), r"in \[0, inf\)"),
-        ("lr_trunk_policy", float("nan"), r"in \(0, inf\)"),
-        ("clip_value_end", float("inf"), r"in \(0, inf\)"),
-        ("teacher_coeff", float("inf"), r"in \[0, inf\)"),
-        ("lmbda", float("nan"), r"in \[0, 1\]"),
-        # above a range
-        ("clip_epsilon_start", 1.0, r"in \(0, 1\)"),
-        ("value_norm_decay", 1.0, r"in \[0, 1\)"),
-        # types
-        ("epochs", 2.0, "an integer >= 1"),
-        ("num_envs", True, "an integer >= 1"),
-        ("compile", 1, "true or false"),
-        ("normalize_value", "false", "true or false"),
-    ],
-)
-def test_a_setting_outside_its_range_is_refused_with_the_range(field, value, allowed):
-    message = rf"^{setting_name(field)} must be .*{allowed}, got {value!r}"
-    with pytest.raises(ValueError, match=message):
-        TrainConfig(**{field: value}).validate()
 
 
 def test_a_non_finite_update_stops_training_naming_the_first_non_finite_loss():

@@ -1,4 +1,5 @@
-"""The recipes' run: which CPU-sized defaults apply, settings' rules, the stop request."""
+"""What the recipes share around the loop: which CPU-sized defaults apply, the device setting,
+a checkpoint's actions, the stop request, the best window."""
 
 import signal
 
@@ -8,16 +9,10 @@ from omegaconf import OmegaConf
 from tqdm import tqdm
 
 from terrashift_rl.sim import TerraShiftConfig
-from terrashift_rl.training import load_checkpoint, run
-from terrashift_rl.training.run import (
-    OVERRIDES,
-    StopRequest,
-    check_action_mode,
-    check_settings,
-    cpu_overrides,
-    resolve_device,
-    size_for_the_machine,
-)
+from terrashift_rl.training import load_checkpoint
+from terrashift_rl.training.checkpoint import check_action_mode, update_best
+from terrashift_rl.training.launch import cpu_overrides, resolve_device, size_for_the_machine
+from terrashift_rl.training.signals import StopRequest
 
 DEFAULTS = ["model=small", "train.num_envs=32", "run.eval_episodes=16"]
 
@@ -44,12 +39,12 @@ def test_a_cpu_default_applies_unless_the_command_line_sets_its_key_or_group(giv
     ("value", "shown"),
     [("model=small", "'model=small'"), (["model"], r"\['model'\]"), ([3], r"\[3\]")],
 )
-def test_cpu_defaults_that_are_not_overrides_are_refused_naming_the_key(value, shown):
-    rules = {"run.cpu_defaults": OVERRIDES}
-    check_settings(OmegaConf.create({"run": {"cpu_defaults": DEFAULTS}}), rules)
+def test_cpu_defaults_that_are_not_overrides_are_refused_naming_the_key(monkeypatch, value, shown):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    cfg = OmegaConf.create({"run": {"device": "auto", "cpu_defaults": value}})
     message = f"^run.cpu_defaults must be a list of overrides \\(key=value\\), got {shown}$"
     with pytest.raises(ValueError, match=message):
-        check_settings(OmegaConf.create({"run": {"cpu_defaults": value}}), rules)
+        size_for_the_machine(cfg, device_key="run.device", defaults_key="run.cpu_defaults")
 
 
 @pytest.mark.parametrize(("device", "cuda"), [("cpu", False), ("cuda:0", True), ("auto", True)])
@@ -73,10 +68,6 @@ def test_a_checkpoint_is_refused_on_a_scene_with_other_actions():
     check_action_mode(shape, TerraShiftConfig(action_mode="shape"), "run.pretrained")
     with pytest.raises(ValueError, match="run.pretrained was trained with env.action_mode=shape"):
         check_action_mode(shape, TerraShiftConfig(), "run.pretrained")
-    # a checkpoint older than the setting had the paper's delta actions
-    check_action_mode({"env_config": {}}, TerraShiftConfig(), "checkpoint")
-    with pytest.raises(ValueError, match="set env.action_mode=delta"):
-        check_action_mode({"env_config": {}}, TerraShiftConfig(action_mode="shape"), "checkpoint")
 
 
 def test_a_second_signal_interrupts_at_once():
@@ -99,13 +90,13 @@ def test_the_best_window_writes_best_pt_only_when_its_mean_is_the_highest_yet(tm
 
     best = {"reward": -float("inf"), "recent": []}
     path = tmp_path / "best.pt"
-    run.update_best(best, 1.0, 2, Trainer(), {}, path)
+    update_best(best, 1.0, 2, Trainer(), {}, path)
     assert not path.exists()  # the window is not full yet
-    run.update_best(best, 3.0, 2, Trainer(), {}, path)
+    update_best(best, 3.0, 2, Trainer(), {}, path)
     assert best == {"reward": 2.0, "recent": [1.0, 3.0]}
     saved = load_checkpoint(path)
     assert (saved["mean_reward_per_decision"], saved["iteration"]) == (2.0, 3)
     assert saved["algo"] == "mapoca" and "weight" in saved["networks"]
     path.unlink()
-    run.update_best(best, 0.0, 2, Trainer(), {}, path)
+    update_best(best, 0.0, 2, Trainer(), {}, path)
     assert best["reward"] == 2.0 and best["recent"] == [3.0, 0.0] and not path.exists()

@@ -1,0 +1,412 @@
+"""The settings room: every setting of the recipes, typed once and checked once at start-up.
+
+Each config group of ``recipes/configs`` is a dataclass whose fields carry their type, default,
+allowed range (:func:`~terrashift_rl.fields.setting`) and a docstring:
+
+========== ===================================================================================
+group      settings
+========== ===================================================================================
+``env``    :class:`~terrashift_rl.sim.TerraShiftConfig` (the simulator's scene)
+``model``  :class:`~terrashift_rl.modules.TerraShiftModelConfig` (network sizes)
+``train``  :class:`TrainConfig` (collection, optimisation, execution)
+``loss``   the algorithm's own: :class:`~terrashift_rl.training.algorithms.MAPOCAConfig`,
+           :class:`~terrashift_rl.training.algorithms.MAPPOConfig` or
+           :class:`~terrashift_rl.training.algorithms.IPPOConfig`, picked by the ``algo`` group
+``run``    :class:`RunConfig` (seed, length, checkpoints, evaluations)
+``logger`` :class:`LoggerConfig`
+========== ===================================================================================
+
+:class:`RecipeConfig` is the training recipes' whole config and :class:`EvaluateConfig` the
+evaluation recipe's; :meth:`RecipeConfig.of` and :meth:`EvaluateConfig.of` build them from the
+composed Hydra config through :func:`~terrashift_rl.fields.build`, which refuses a key that its
+group lacks (also one added with ``+``), a value of the wrong type (an integer for a boolean) or
+outside its range, naming the key, the value and what is allowed. :func:`register_config_schemas`
+gives Hydra every group's defaults, so each field can be set as ``group.field=value``;
+:func:`override` writes a setting back as the command line sets it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import shlex
+from dataclasses import dataclass, field
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.errors import OverrideParseException
+from omegaconf import DictConfig, OmegaConf
+
+from terrashift_rl.fields import (
+    Allowed,
+    above,
+    at_least,
+    build,
+    check_fields,
+    one_of,
+    setting,
+)
+from terrashift_rl.modules import TerraShiftModelConfig
+from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.training.algorithms import ALGORITHMS, LossConfig, MAPOCAConfig
+
+__all__ = [
+    "EvaluateConfig",
+    "LoggerConfig",
+    "RecipeConfig",
+    "RunConfig",
+    "TrainConfig",
+    "VideoConfig",
+    "hydra_override",
+    "loss_config",
+    "override",
+    "register_config_schemas",
+]
+
+NAME = Allowed(
+    lambda value: 0 < len(value) <= 100 and "/" not in value and value not in (".", ".."),
+    "a name of 1 to 100 characters without /",
+)
+PATH = Allowed(lambda value: value != "", "a non-empty path")
+DEVICE = Allowed(
+    lambda value: re.fullmatch(r"auto|cpu|cuda(:\d+)?", value) is not None,
+    "auto, cpu, cuda or cuda:<index>",
+)
+OVERRIDES = Allowed(
+    lambda value: all("=" in item for item in value), "a list of overrides (key=value)"
+)
+SEED = Allowed(lambda value: 0 <= value < 2**64, "in [0, 2**64)")
+
+
+@dataclass
+class TrainConfig:
+    """Collection and optimisation settings of the on-policy trainer (the ``train`` group) and
+    the loss's (``loss``, the algorithm's own settings class).
+
+    Start/end pairs are linear schedules over ``schedule_iterations`` updates. The defaults
+    (2,048 environments, 2 epochs of 8 mini-batches, learning rates 1e-3 / 6e-4, a constant
+    entropy coefficient of 0.002, schedules over 1,000 updates) suit thousands of environments
+    on one GPU; Table 1's (``recipes/configs/mapoca_paper.yaml``) suit them poorly
+    (docs/experiments.md).
+
+    Example:
+        >>> TrainConfig(num_envs=4, minibatches=8)  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        ValueError: train.minibatches (8) exceeds train.num_envs (4): a mini-batch holds ...
+    """
+
+    num_envs: int = setting(2048, at_least(1))
+    """Environments stepped together."""
+    steps_per_iteration: int = setting(32, at_least(1))
+    """Decisions collected per environment per iteration; also the GRU's training sequence."""
+    epochs: int = setting(2, at_least(1))
+    """Passes over each collected batch."""
+    minibatches: int = setting(8, at_least(1))
+    """Mini-batches per epoch (each holds num_envs / minibatches whole sequences)."""
+    lr_trunk_policy: float = setting(1.0e-3, above(0))
+    """AdamW learning rate of the trunk and the policy head at the start (3e-4 barely moves
+    a Beta policy per update)."""
+    lr_value_baseline: float = setting(6.0e-4, above(0))
+    """AdamW learning rate of the critics at the start (MA-POCA's value and baseline heads,
+    MAPPO's value head, IPPO's per-agent value head)."""
+    lr_schedule: str = setting("linear", one_of("linear", "adaptive"))
+    """How the trunk and policy's learning rate moves: ``linear`` from its start to
+    ``lr_end_factor`` times it over ``schedule_iterations`` updates; ``adaptive`` so that the
+    policy's KL divergence per update stays near ``desired_kl`` (RSL-RL's rule: after each
+    mini-batch's KL estimate, divide by 1.5 above twice the target, multiply by 1.5 below half
+    of it), within [lr_min, lr_max]. The critics' rate is linear either way."""
+    lr_end_factor: float = setting(0.1, above(0))
+    """Linear schedules end at this fraction of their learning rate's start."""
+    desired_kl: float = setting(0.01, above(0))
+    """With ``lr_schedule=adaptive``, the KL divergence per update the learning rates aim at."""
+    lr_min: float = setting(1.0e-5, above(0))
+    """With ``lr_schedule=adaptive``, the trunk and policy's smallest learning rate."""
+    lr_max: float = setting(1.0e-2, above(0))
+    """With ``lr_schedule=adaptive``, the trunk and policy's largest learning rate."""
+    weight_decay: float = setting(0.01, at_least(0))
+    """AdamW weight decay."""
+    max_grad_norm_start: float = setting(5.0, above(0))
+    """Gradient-norm clip of every update at the start."""
+    max_grad_norm_end: float = setting(0.5, above(0))
+    """Gradient-norm clip after ``schedule_iterations`` updates."""
+    schedule_iterations: int = setting(1000, at_least(1))
+    """Updates over which every schedule runs from start to end."""
+    critic_warmup_iterations: int = setting(0, at_least(0))
+    """Iterations at the start of a run that train only the critics, with the
+    trunk and policy frozen: a pretrained policy then meets a new scene with critics fitted to
+    it (and return statistics re-estimated) instead of advantages from miscalibrated ones."""
+    bf16: bool = setting(False)
+    """Run the networks under bfloat16 autocast on CUDA."""
+    tf32: bool = setting(True)
+    """On CUDA, let float32 matrix products use TensorFloat-32 tensor cores (sets the
+    process-wide ``torch.backends.cuda.matmul.allow_tf32``)."""
+    stagger_episodes: bool = setting(True)
+    """Spread the first episodes' step limits over an episode's length, so that environments do
+    not all reset at the same decision
+    (:meth:`~terrashift_rl.envs.terrashift.TerraShiftEnv.stagger_episodes`)."""
+    compile: bool = setting(False)
+    """``torch.compile`` the networks (all but the GRU's loop over time); the first iterations
+    then include compilation. With ``cuda_graphs`` the compiled kernels replay in the graphs."""
+    cuda_graphs: bool = setting(True)
+    """On CUDA, replay the actor's collection step and the mini-batch update (loss, backward,
+    clipping, AdamW) as CUDA graphs (:class:`~terrashift_rl.training.graphs.CudaGraphed`);
+    ignored on other devices."""
+    deterministic: bool = setting(False)
+    """Use only deterministic algorithms (sets the process-wide
+    ``torch.use_deterministic_algorithms(True)`` and ``CUBLAS_WORKSPACE_CONFIG`` if unset), so
+    that a seeded run on CUDA repeats exactly on the same machine and software; on the CPU runs
+    repeat without it."""
+    loss: LossConfig = field(default_factory=MAPOCAConfig)
+    """The algorithm's loss settings (the ``loss`` group); its class is the algorithm."""
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    @property
+    def algo(self) -> str:
+        """The algorithm, a key of :data:`~terrashift_rl.training.algorithms.ALGORITHMS`."""
+        return self.loss.algo
+
+    def validate(self) -> None:
+        """Raises ``ValueError`` naming the first setting of the wrong type or outside its
+        allowed range, or an impossible combination, saying what to change."""
+        check_fields(self, "train")
+        self.loss.validate()
+        if self.minibatches > self.num_envs:
+            raise ValueError(
+                f"train.minibatches ({self.minibatches}) exceeds train.num_envs "
+                f"({self.num_envs}): a mini-batch holds whole environment sequences, so use at "
+                f"most {self.num_envs} mini-batches or more environments"
+            )
+        if self.lr_schedule == "adaptive" and not (
+            self.lr_min <= self.lr_trunk_policy <= self.lr_max
+        ):
+            raise ValueError(
+                f"train.lr_trunk_policy ({self.lr_trunk_policy}) must lie in [train.lr_min, "
+                f"train.lr_max] = [{self.lr_min}, {self.lr_max}] with train.lr_schedule=adaptive"
+            )
+
+
+def loss_config(values: dict[str, Any]) -> LossConfig:
+    """The loss settings of the algorithm ``values["algo"]`` names, from the ``loss`` group's
+    ``values``; a setting of another algorithm is refused naming it and the algorithm.
+
+    Example:
+        >>> loss_config({"algo": "mappo", "teacher_coeff": 1.0})  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        ValueError: loss.teacher_coeff is not a setting of algo=mappo; its loss settings are: ...
+    """
+    values = dict(values)
+    algo = values.pop("algo", None)
+    if algo not in ALGORITHMS:
+        raise ValueError(f"loss.algo must be one of {', '.join(ALGORITHMS)}, got {algo!r}")
+    known = [field.name for field in dataclasses.fields(ALGORITHMS[algo])]
+    unknown = [key for key in values if key not in known]
+    if unknown:
+        raise ValueError(
+            f"loss.{unknown[0]} is not a setting of algo={algo}; its loss settings are: "
+            + ", ".join(known)
+        )
+    return build(ALGORITHMS[algo], values, "loss")
+
+
+@dataclass
+class RunConfig:
+    """What a training run does around the loop (the ``run`` settings)."""
+
+    name: str = setting("mapoca_pretrain", NAME)
+    """The run's name: the progress bar's label and the logger's run name."""
+    seed: int = setting(0, SEED)
+    """Seed of the networks' initialisation and the training environments (rank r of a
+    data-parallel run: seed + r)."""
+    device: str = setting("auto", DEVICE)
+    """``auto`` (CUDA when present, else the CPU with ``cpu_defaults``), ``cpu``, ``cuda`` or
+    ``cuda:<index>``."""
+    cpu_defaults: list[str] = setting(
+        ["model=small", "train.num_envs=32", "run.eval_episodes=16"], OVERRIDES
+    )
+    """With ``device=auto`` and no CUDA device, these overrides size the run for a CPU (a first
+    iteration in seconds, under 1 GB), each unless the command line sets its key or group; a
+    run from a checkpoint (resume, pretrained) builds that checkpoint's model instead of
+    ``model=small``. ``device=cpu`` keeps the configured sizes."""
+    total_env_steps: int = setting(100_000_000, at_least(1))
+    """Environment steps (decisions x environments) after which the run stops."""
+    minutes: float | None = setting(None, above(0), null="no time limit")
+    """Wall-clock minutes after which the run stops with a checkpoint."""
+    checkpoint_every: int = setting(25, at_least(1))
+    """Iterations between writes of ``checkpoints/last.pt``."""
+    best_window: int = setting(8, at_least(0))
+    """``best.pt`` holds the weights at the best mean reward over this many iterations; 0
+    writes none."""
+    snapshot_every: int | None = setting(None, at_least(1), null="no snapshots")
+    """Also keep the weights every n iterations (``iteration_NNNNNN.pt``)."""
+    eval_every: int | None = setting(50, at_least(1), null="no evaluation")
+    """Iterations between evaluations in evaluation mode (no respawn, mean action), logged as
+    ``eval_goal_fraction``, ...; also before the first with ``pretrained`` (the pretrained
+    weights' zero-shot score)."""
+    eval_episodes: int = setting(128, at_least(1))
+    """Episodes per evaluation (one environment each)."""
+    eval_seed: int = setting(1, SEED)
+    """Seed of every evaluation's scenes (training uses ``seed``)."""
+    eval_sampled: bool = setting(False)
+    """Also score the sampled actions on those scenes (``eval_sampled_...``)."""
+    resume: str | None = setting(None, PATH, null="a fresh start")
+    """A checkpoint of this recipe to continue from, exactly."""
+    pretrained: str | None = setting(None, PATH, null="no pretrained weights")
+    """A checkpoint whose network weights start this run (finetuning)."""
+
+
+@dataclass
+class LoggerConfig:
+    """Where the metrics go (the ``logger`` group)."""
+
+    kind: str = setting("none", one_of("wandb", "csv", "tensorboard", "none"))
+    """``wandb``, ``csv`` or ``tensorboard`` files under the run's folder, or ``none``."""
+    mode: str = setting("offline", one_of("offline", "online"))
+    """With ``kind=wandb``: ``offline`` (no account, no network) or ``online`` (syncs)."""
+    project: str = setting("terrashift_rl")
+    """With ``kind=wandb``: the project's name."""
+
+
+@dataclass
+class RecipeConfig:
+    """The training recipes' whole config: the scene, the networks, training with its loss, the
+    run and the logger."""
+
+    env: TerraShiftConfig = field(default_factory=TerraShiftConfig)
+    """The scene the policy trains on."""
+    model: TerraShiftModelConfig = field(default_factory=TerraShiftModelConfig)
+    """Network sizes."""
+    train: TrainConfig = field(default_factory=TrainConfig)
+    """Collection, optimisation and the loss."""
+    run: RunConfig = field(default_factory=RunConfig)
+    """Seed, length, device, checkpoints and evaluations."""
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+    """Where the metrics go."""
+
+    @classmethod
+    def of(cls, cfg: DictConfig) -> RecipeConfig:
+        """The settings the composed config ``cfg`` holds, every one checked (the ``loss`` group
+        goes into :attr:`TrainConfig.loss`)."""
+        values = _values(cfg)
+        groups = [*(field.name for field in dataclasses.fields(cls)), "loss"]
+        unknown = [key for key in values if key not in groups]
+        if unknown:
+            raise ValueError(
+                f"{unknown[0]} is not a setting; the config groups are: {', '.join(groups)}"
+            )
+        loss = loss_config(values.pop("loss", {"algo": "mapoca"}))
+        values["train"] = build(TrainConfig, {**values.get("train", {}), "loss": loss}, "train")
+        return build(cls, values, "")
+
+
+@dataclass
+class VideoConfig:
+    """The evaluation recipe's video of one environment."""
+
+    steps: int = setting(256, at_least(0))
+    """Decisions to record; 0 records no video."""
+    every: int = setting(2, at_least(1))
+    """Render every n-th decision."""
+    fps: float = setting(15.0, above(0))
+    """Frames per second of the video."""
+    format: str = setting("mp4", one_of("mp4", "gif"))
+    """The video's file format."""
+
+
+@dataclass
+class EvaluateConfig:
+    """The evaluation recipe's config (``recipes/configs/evaluate.yaml``)."""
+
+    env: TerraShiftConfig = field(default_factory=TerraShiftConfig)
+    """The scene, unless ``scene_from_checkpoint`` takes the checkpoint's."""
+    checkpoint: str | None = setting(None, PATH, null="the baselines alone")
+    """A training checkpoint to score."""
+    scene_from_checkpoint: bool = setting(True)
+    """Evaluate on the checkpoint's scene rather than the ``env`` group's."""
+    episodes: int = setting(256, at_least(1))
+    """Episodes scored, one per environment."""
+    respawn: bool = setting(False)
+    """``false``: evaluation mode; ``true``: training mode (respawn; every episode runs to the
+    step limit), the paper's reward per decision."""
+    baselines: bool = setting(True)
+    """Also score random, zero and the scripted heuristic."""
+    device: str = setting("auto", DEVICE)
+    """``auto`` (CUDA when present, else the CPU with ``cpu_defaults``), ``cpu``, ``cuda`` or
+    ``cuda:<index>``."""
+    cpu_defaults: list[str] = setting(["episodes=64"], OVERRIDES)
+    """With ``device=auto`` and no CUDA device, these overrides apply unless the command line
+    sets their keys (a minute or two)."""
+    seed: int = setting(1, SEED)
+    """Seed of the scenes and the sampled actions."""
+    video: VideoConfig = field(default_factory=VideoConfig)
+    """The video of one environment."""
+    wandb: bool = setting(False)
+    """Also log the metrics and the video to an offline wandb run."""
+
+    @classmethod
+    def of(cls, cfg: DictConfig) -> EvaluateConfig:
+        """The settings the composed config ``cfg`` holds, every one checked."""
+        return build(cls, _values(cfg), "")
+
+
+def _values(cfg: DictConfig) -> dict[str, Any]:
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+def register_config_schemas() -> None:
+    """Gives Hydra the defaults of every group, as plain values: the group files name the fields
+    they change, the settings classes supply the others, so every field can be set as
+    ``group.field=value``, and :meth:`RecipeConfig.of` types them. Options: ``env/schema``,
+    ``model/schema`` and ``model/schema_small``
+    (:meth:`~terrashift_rl.modules.TerraShiftModelConfig.small`), ``train/schema``,
+    ``algo/<algo>_schema`` (placed at ``loss``, with ``loss.algo``), ``logger/schema``,
+    ``run_schema`` (placed at ``run``) and ``evaluate_schema``."""
+    store = ConfigStore.instance()
+    store.store(group="env", name="schema", node=dataclasses.asdict(TerraShiftConfig()))
+    store.store(group="model", name="schema", node=dataclasses.asdict(TerraShiftModelConfig()))
+    store.store(
+        group="model", name="schema_small", node=dataclasses.asdict(TerraShiftModelConfig.small())
+    )
+    train = dataclasses.asdict(TrainConfig())
+    del train["loss"]
+    store.store(group="train", name="schema", node=train)
+    for algo, config in ALGORITHMS.items():
+        node = {"algo": algo, **dataclasses.asdict(config())}
+        store.store(group="algo", name=f"{algo}_schema", node=node, package="loss")
+    store.store(group="logger", name="schema", node=dataclasses.asdict(LoggerConfig()))
+    store.store(name="run_schema", node=dataclasses.asdict(RunConfig()), package="run")
+    evaluate = dataclasses.asdict(EvaluateConfig())
+    del evaluate["env"]
+    store.store(name="evaluate_schema", node=evaluate)
+
+
+def hydra_override(key: str, value: Any) -> str:
+    """``key=value`` as Hydra reads it back as ``value``.
+
+    Example:
+        >>> print(hydra_override("env.column_shape", "box"), hydra_override("model.gain", 0.5))
+        env.column_shape=box model.gain=0.5
+    """
+    text = json.dumps(value, separators=(",", ":"))  # null, true, [4,8,8], "box"
+    if isinstance(value, str):
+        try:  # unquoted where Hydra reads the bare string as that string
+            if OverridesParser.create().parse_override(f"{key}={value}").value() == value:
+                text = value
+        except OverrideParseException:
+            pass
+    return f"{key}={text}"
+
+
+def override(key: str, value: Any) -> str:
+    """:func:`hydra_override`, quoted for a shell where needed.
+
+    Example:
+        >>> print(override("env.column_shape", "box"), override("model.cnn_channels", [8, 16]))
+        env.column_shape=box 'model.cnn_channels=[8,16]'
+    """
+    return shlex.quote(hydra_override(key, value))
