@@ -87,6 +87,7 @@ class Simulator:
         self.actuator = actuator_for(self.config)
         """The actuator family (``config.actuator``)."""
         self.model = build_model(self.config)
+        self.actuator.configure(self.model, self.config)
         self.data = Data(
             self.config,
             num_envs=num_envs,

@@ -169,7 +169,8 @@ def damping_ratio_for_restitution(restitution: float, *, step: float = 1.0e-2) -
 
 
 def build_model(config: TerraShiftConfig) -> Model:
-    """Derives the kernel constants from a validated config."""
+    """Derives the kernel constants from a validated config; the actuator family then sets its
+    own (:meth:`~terrashift_rl.sim.actuators.Actuator.configure`)."""
     m = Model()
     cell = config.cell_size
     m.grid_size = config.grid_size
@@ -252,10 +253,6 @@ def build_model(config: TerraShiftConfig) -> Model:
     m.heightmap_resolution = config.heightmap_resolution
     m.heightmap_max_height = config.heightmap_max_height
     m.max_object_speed = config.max_object_speed
-    # the family's own constants; imported here as the families build on this module
-    from terrashift_rl.sim.actuators import actuator_for
-
-    actuator_for(config).configure(m, config)
     return m
 
 

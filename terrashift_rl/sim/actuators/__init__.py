@@ -25,7 +25,7 @@ if TYPE_CHECKING:
 ACTUATORS: dict[str, Actuator] = {
     family.name: family for family in (Wavelets(), SurfaceFlow(), Rotors())
 }
-"""Every actuator family, by name."""
+"""Every actuator family, by name (the names are the config's ``ACTUATOR_FAMILIES``)."""
 
 
 def actuator_for(config: TerraShiftConfig) -> Actuator:
