@@ -1,0 +1,344 @@
+"""Loss speed: one update of MAPOCALoss against torchrl's MAPPOLoss on VMAS-shaped data.
+
+One update is what a training iteration spends in the loss: the value-estimation pass on a
+collected batch of ``--envs`` x ``--steps`` frames (60 x 100 = 6,000, VMAS's batch in
+``benchmarks/vmas_parity.py``), then one epoch of mini-batches of ``--minibatch`` frames, each
+a forward pass, backward and an Adam step. K agents observe 10 features and act in 2 dims.
+Both losses share the actor of ``examples/mapoca_vs_mappo.py`` (a tanh-Normal MLP, 2 x 64);
+MAPOCALoss has the README's critics, ``CentralValue(10, width=64, depth=1)`` and
+``CounterfactualBaseline(10, 2, width=64, depth=1)``; MAPPOLoss its usual centralised
+``MultiAgentMLP`` critic (2 x 128). Every measurement runs in a fresh process, on one CPU
+thread by default (``--threads``).
+
+Time per update is the median of ``--repeats`` updates after one warm-up. Peak memory is what
+one update holds at most beyond what was there before it: on CUDA
+``torch.cuda.max_memory_allocated``; on CPU the process's peak resident set
+(``resource.getrusage``) less its resident set before the first update. With ``--parts`` it
+also times the parts of one mini-batch step apart (forward and backward of each network, the
+rest of the loss, the optimiser) and of the value-estimation pass.
+
+    python benchmarks/loss_speed.py                      # CPU, K = 4 and 16
+    python benchmarks/loss_speed.py --device cuda --parts
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import statistics
+import time
+from concurrent.futures import ProcessPoolExecutor
+from datetime import date
+from multiprocessing import get_context
+from pathlib import Path
+
+import torch
+from common import device_name, write_results
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.modules import MultiAgentMLP, NormalParamExtractor, ProbabilisticActor, TanhNormal
+from torchrl.objectives import LossModule
+from torchrl.objectives.multiagent import MAPPOLoss
+
+from terrashift_rl.modules import CentralValue, CounterfactualBaseline
+from terrashift_rl.objectives import MAPOCALoss
+
+OBSERVATION_DIM, ACTION_DIM = 10, 2
+GROUP = "agents"
+OBSERVATION, ACTION = (GROUP, "observation"), (GROUP, "action")
+METHODS = ("MAPOCA", "MAPPO")
+
+
+def make_actor() -> ProbabilisticActor:
+    """One MLP shared by the agents, on each agent's observation: a tanh-Normal policy."""
+    network = nn.Sequential(
+        nn.Linear(OBSERVATION_DIM, 64),
+        nn.Tanh(),
+        nn.Linear(64, 64),
+        nn.Tanh(),
+        nn.Linear(64, 2 * ACTION_DIM),
+        NormalParamExtractor(),
+    )
+    return ProbabilisticActor(
+        TensorDictModule(
+            network, in_keys=[OBSERVATION], out_keys=[(GROUP, "loc"), (GROUP, "scale")]
+        ),
+        in_keys=[(GROUP, "loc"), (GROUP, "scale")],
+        out_keys=[ACTION],
+        distribution_class=TanhNormal,
+        distribution_kwargs={"low": -torch.ones(ACTION_DIM), "high": torch.ones(ACTION_DIM)},
+        return_log_prob=True,
+    )
+
+
+def make_loss(method: str, num_agents: int) -> LossModule:
+    actor = make_actor()
+    if method == "MAPOCA":
+        value = CentralValue(OBSERVATION_DIM, width=64, depth=1)
+        baseline = CounterfactualBaseline(OBSERVATION_DIM, ACTION_DIM, width=64, depth=1)
+        loss = MAPOCALoss(actor, value, baseline)
+    else:
+        critic = TensorDictModule(
+            MultiAgentMLP(
+                n_agent_inputs=OBSERVATION_DIM,
+                n_agent_outputs=1,
+                n_agents=num_agents,
+                centralized=True,
+                share_params=True,
+                depth=2,
+                num_cells=128,
+                activation_class=nn.Tanh,
+            ),
+            in_keys=[OBSERVATION],
+            out_keys=[(GROUP, "state_value")],
+        )
+        loss = MAPPOLoss(actor, critic)
+        loss.set_keys(value=(GROUP, "state_value"), reward=(GROUP, "reward"))
+    loss.make_value_estimator(loss.default_value_estimator, gamma=0.99, lmbda=0.95)
+    return loss
+
+
+def make_batch(
+    num_envs: int, steps: int, num_agents: int, device: torch.device, *, seed: int = 0
+) -> TensorDict:
+    """A collected batch [envs, steps] in VMAS's layout: per-agent observations and rewards,
+    team done flags (every episode ends at the last step)."""
+    generator = torch.Generator().manual_seed(seed)
+    shape = (num_envs, steps)
+
+    def normal(*size: int) -> torch.Tensor:
+        return torch.randn(*shape, *size, generator=generator)
+
+    done = torch.zeros(*shape, 1, dtype=torch.bool)
+    done[:, -1] = True
+    batch = TensorDict(
+        {
+            OBSERVATION: normal(num_agents, OBSERVATION_DIM),
+            ("next", *OBSERVATION): normal(num_agents, OBSERVATION_DIM),
+            ("next", GROUP, "reward"): normal(num_agents, 1),
+            ("next", "done"): done,
+            ("next", "terminated"): torch.zeros_like(done),
+            ("next", GROUP, "done"): done.unsqueeze(-2).expand(*shape, num_agents, 1),
+            ("next", GROUP, "terminated"): torch.zeros(*shape, num_agents, 1, dtype=torch.bool),
+        },
+        batch_size=shape,
+    )
+    return batch.to(device)
+
+
+def estimate(loss: LossModule, batch: TensorDictBase) -> TensorDictBase:
+    """The value-estimation pass as torchrl's MAPPO example calls it."""
+    return loss.value_estimator(
+        batch, params=loss.critic_network_params, target_params=loss.target_critic_network_params
+    )
+
+
+def update(
+    loss: LossModule, optimiser: torch.optim.Optimizer, batch: TensorDictBase, minibatch: int
+) -> None:
+    """The value-estimation pass, then one epoch of mini-batches."""
+    estimate(loss, batch)
+    samples = batch.reshape(-1)
+    for index in torch.randperm(samples.numel(), device=samples.device).split(minibatch):
+        minibatch_step(loss, optimiser, samples[index])
+
+
+def minibatch_step(
+    loss: LossModule, optimiser: torch.optim.Optimizer, samples: TensorDictBase
+) -> None:
+    losses = loss(samples)
+    total = sum(value for key, value in losses.items() if key.startswith("loss_"))
+    optimiser.zero_grad()
+    total.backward()
+    optimiser.step()
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _timed(function, device: torch.device, repeats: int) -> float:
+    """Median seconds of ``repeats`` calls after one warm-up."""
+    function()
+    seconds = []
+    for _ in range(repeats):
+        _sync(device)
+        start = time.perf_counter()
+        function()
+        _sync(device)
+        seconds.append(time.perf_counter() - start)
+    return statistics.median(seconds)
+
+
+def _resident_bytes() -> int:
+    with open("/proc/self/statm") as file:
+        return int(file.read().split()[1]) * resource.getpagesize()
+
+
+def measure(method: str, num_agents: int, args: argparse.Namespace) -> dict:
+    """Peak memory of one update, then its time (and the parts'), in this process."""
+    torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    torch.manual_seed(0)
+    loss = make_loss(method, num_agents).to(device)
+    optimiser = torch.optim.Adam(loss.parameters(), lr=1e-4)
+    collected = make_batch(args.envs, args.steps, num_agents, device)
+    with torch.no_grad():
+        loss.actor_network(collected)  # collection: actions and their log-probs
+
+    batch = collected.clone()
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+        before = torch.cuda.memory_allocated(device)
+        update(loss, optimiser, batch, args.minibatch)
+        peak = torch.cuda.max_memory_allocated(device) - before
+    else:
+        before = _resident_bytes()
+        update(loss, optimiser, batch, args.minibatch)
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - before
+    row = {
+        "method": method,
+        "agents": num_agents,
+        "parameters": sum(p.numel() for p in loss.parameters()),
+        "update_s": _timed(
+            lambda: update(loss, optimiser, collected.clone(), args.minibatch),
+            device,
+            args.repeats,
+        ),
+        "peak_memory_mb": peak / 2**20,
+    }
+    if args.parts:
+        row["parts_ms"] = parts(loss, optimiser, collected, args, device)
+    return row
+
+
+def parts(
+    loss: LossModule,
+    optimiser: torch.optim.Optimizer,
+    collected: TensorDictBase,
+    args: argparse.Namespace,
+    device: torch.device,
+) -> dict[str, float]:
+    """Milliseconds of the parts of one mini-batch step, each timed apart (forward and backward;
+    "loss terms" is the step less the networks and the optimiser), and of the estimation pass
+    (its critics on the collected steps and on the next steps; "returns" is the rest)."""
+    batch = estimate(loss, collected.clone())
+    samples = batch.reshape(-1)[: args.minibatch]
+
+    def backward(output: torch.Tensor) -> None:
+        output.float().sum().backward()
+
+    def actor() -> None:
+        dist = loss.actor_network.get_dist(samples.copy())
+        backward(dist.log_prob(samples[ACTION]) + dist.log_prob(dist.rsample()))
+
+    timed = {
+        "step": lambda: minibatch_step(loss, optimiser, samples.copy()),
+        "actor": actor,
+        "optimiser": optimiser.step,
+    }
+    if isinstance(loss, MAPOCALoss):
+        value, baseline = loss.value_network.module, loss.baseline_network.module
+        observation = samples[OBSERVATION]
+        pair = torch.cat([observation, samples[ACTION]], -1)
+        timed["value network"] = lambda: backward(value(observation))
+        timed["baseline encoders"] = lambda: backward(
+            baseline.own_state(observation) + baseline.other_state_action(pair)
+        )
+        timed["baseline network"] = lambda: backward(baseline(observation, samples[ACTION]))
+    else:
+        timed["critic"] = lambda: backward(
+            loss.critic_network(samples.copy())[loss.tensor_keys.value]
+        )
+    ms = {name: 1e3 * _timed(function, device, args.repeats) for name, function in timed.items()}
+    networks = sum(
+        ms[name] for name in ("actor", "value network", "baseline network", "critic") if name in ms
+    )
+    ms["loss terms"] = ms["step"] - networks - ms["optimiser"]
+    if isinstance(loss, MAPOCALoss):
+        ms["baseline attention and head"] = ms["baseline network"] - ms["baseline encoders"]
+
+    root, next_step = collected.exclude("next"), collected["next"]
+    with torch.no_grad():
+        ms["estimation"] = 1e3 * _timed(
+            lambda: estimate(loss, collected.clone()), device, args.repeats
+        )
+        if isinstance(loss, MAPOCALoss):
+
+            def critics() -> None:
+                loss.baseline_network(loss.value_network(root.copy()))
+
+            ms["estimation: critics (collected)"] = 1e3 * _timed(critics, device, args.repeats)
+            ms["estimation: critics (next)"] = 1e3 * _timed(
+                lambda: loss.value_network(next_step.copy()), device, args.repeats
+            )
+        else:
+            ms["estimation: critics (collected)"] = 1e3 * _timed(
+                lambda: loss.critic_network(root.copy()), device, args.repeats
+            )
+            ms["estimation: critics (next)"] = 1e3 * _timed(
+                lambda: loss.critic_network(next_step.copy()), device, args.repeats
+            )
+        ms["estimation: returns"] = (
+            ms["estimation"]
+            - ms["estimation: critics (collected)"]
+            - ms["estimation: critics (next)"]
+        )
+    return ms
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--agents", type=int, nargs="+", default=[4, 16])
+    parser.add_argument("--envs", type=int, default=60)
+    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--minibatch", type=int, default=400)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument("--parts", action="store_true", help="also time the parts of an update")
+    parser.add_argument("--out", type=Path, default=None, help="JSON path (default by device)")
+    args = parser.parse_args()
+    device = torch.device(args.device)
+    out = args.out or Path(__file__).parent / "results" / f"loss_speed_{device.type}.json"
+    results = {
+        "date": date.today().isoformat(),
+        "device": device_name(device),
+        "threads": args.threads if device.type == "cpu" else None,
+        "settings": {key: getattr(args, key) for key in ("envs", "steps", "minibatch", "repeats")},
+        "rows": [],
+    }
+    print(
+        f"{results['device']}, {args.envs} x {args.steps} frames, mini-batches of {args.minibatch}"
+    )
+    header = ("K", "method", "params", "update s", "peak MB", "time x", "mem x")
+    print("{:>3s} {:7s} {:>7s} {:>9s} {:>8s} {:>7s} {:>6s}".format(*header))
+    # a fresh process per measurement: the CPU peak is the process's, and nothing is cached
+    context = get_context("spawn")
+    for num_agents in args.agents:
+        rows = {}
+        for method in METHODS:
+            with ProcessPoolExecutor(1, mp_context=context) as pool:
+                rows[method] = pool.submit(measure, method, num_agents, args).result()
+        for method in METHODS:
+            row = rows[method]
+            row["time_ratio"] = row["update_s"] / rows["MAPPO"]["update_s"]
+            row["memory_ratio"] = row["peak_memory_mb"] / rows["MAPPO"]["peak_memory_mb"]
+            results["rows"].append(row)
+            print(
+                f"{num_agents:3d} {method:7s} {row['parameters']:7d} {row['update_s']:9.3f} "
+                f"{row['peak_memory_mb']:8.1f} {row['time_ratio']:7.2f} {row['memory_ratio']:6.2f}"
+            )
+        write_results(out, results)
+        if args.parts:
+            for method in METHODS:
+                print(f"  K = {num_agents} {method} parts (ms):")
+                for name, ms in rows[method]["parts_ms"].items():
+                    print(f"    {name:34s} {ms:8.2f}")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
