@@ -119,9 +119,11 @@ class AttentionBaseline(_AttentionPool):
 
     For agent i the set is ``{g(x_i)} + {f(x_j, a_j) : j != i, j present}`` with ``g`` the
     ``own_state`` and ``f`` the ``other_state_action`` encoder; residual self-attention, masked
-    mean, MLP -> 1. All agents are computed at once: a [..., K, K, width] tensor whose row i holds
-    f(x_j, a_j) everywhere except g(x_i) at position i, with a key mask that drops absent agents.
-    Permuting the agents permutes the baselines alike.
+    mean, MLP -> 1. All agents are computed at once, and the encoders run once per agent: the K
+    sets share the tokens f(x_j, a_j), so that only the attention weights and what follows
+    them are computed per set (the K sets of K tokens are never materialised before the
+    attention). A key mask drops absent agents. Permuting the agents permutes the baselines
+    alike.
 
     Args:
         own_state: maps one agent's features [..., F] to [..., width].
@@ -152,10 +154,60 @@ class AttentionBaseline(_AttentionPool):
         own = self.own_state(features)
         others = self.other_state_action(torch.cat([features, action.to(features.dtype)], -1))
         is_self = torch.eye(num_agents, dtype=torch.bool, device=features.device)
-        # tokens[..., i, j] = g(x_i) if i == j else f(x_j, a_j)
-        tokens = torch.where(is_self[..., None], own.unsqueeze(-2), others.unsqueeze(-3))
         key_mask = None if agent_mask is None else agent_mask.unsqueeze(-2) | is_self
-        return self._pool(tokens, key_mask)
+        return self._pool_sets(own, others, is_self, key_mask)
+
+    def _pool_sets(
+        self, own: Tensor, others: Tensor, is_self: Tensor, key_mask: Tensor | None
+    ) -> Tensor:
+        """The residual self-attention over every agent's set, masked mean, MLP.
+
+        The K sets share all but K of their K² tokens, and everything in the block but the
+        attention weights and the output norm acts on one token at a time: the input norm and
+        the query, key and value projections run once on the 2K distinct tokens g(x_i) and
+        f(x_j, a_j), the sets' scores are gathered from their 2K x 2K products, and the value
+        of the set's own token enters as a correction of the shared values. Only the attended
+        tokens, [..., K, K, width], and the scores, [..., heads, K, K, K], are per set.
+        """
+        block = self.attention
+        attention = block.attention
+        num_agents = own.shape[-2]
+        # g(x_1..K), then f(x_1..K, a_1..K); token t of agent i's set is number
+        # t + K (t's pair) where t != i and i (its own state) where t == i
+        normed = block.input_norm(torch.cat([own, others], -2))
+        index = torch.arange(num_agents, device=own.device) + num_agents * ~is_self
+        queries = attention.query_projection(normed).unflatten(-1, (attention.num_heads, -1))
+        keys, values = (
+            attention.key_value_projection(normed)
+            .unflatten(-1, (2, attention.num_heads, -1))
+            .unbind(-3)
+        )
+        # [..., heads, 2K, channels]
+        queries, keys, values = (x.transpose(-2, -3) for x in (queries, keys, values))
+        products = queries @ keys.transpose(-1, -2) * attention.scale
+        # [..., heads, key u, set i, query t]: the keys outermost, so that the softmax over
+        # them runs along contiguous rows of K² entries (over a last dim of K entries, PyTorch's
+        # CPU softmax is many times slower)
+        scores = products[..., index[None, :, :], index.T[:, :, None]]
+        if key_mask is not None:
+            attendable = key_mask.transpose(-1, -2)[..., None, :, :, None]
+            scores = scores.masked_fill(~attendable, float("-inf"))
+        weights = scores.softmax(-3).to(values.dtype)
+        own_values, other_values = values.split(num_agents, -2)
+        # [..., heads, channels, set i, query t]
+        attended = (other_values.transpose(-1, -2) @ weights.flatten(-2)).unflatten(
+            -1, (num_agents, num_agents)
+        )
+        # set i attends to its own g(x_i) where the shared values hold f(x_i, a_i)
+        own_weight = weights.diagonal(dim1=-3, dim2=-2).transpose(-1, -2)
+        own_correction = (own_values - other_values).transpose(-1, -2)
+        attended = attended + own_weight.unsqueeze(-3) * own_correction.unsqueeze(-1)
+        # [..., set i, query t, width]
+        attended = attention.output_projection(attended.flatten(-4, -3).movedim(-3, -1))
+        tokens = torch.where(is_self[..., None], own.unsqueeze(-2), others.unsqueeze(-3))
+        sets = block.output_norm(tokens + block.attention_dropout(attended))
+        # float32 out, also under bf16 autocast, as the value's
+        return self.mlp(masked_mean(sets, key_mask)).float()
 
 
 class CentralValueHead(AttentionValue):

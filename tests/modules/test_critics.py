@@ -8,6 +8,7 @@ from __future__ import annotations
 import pytest
 import torch
 from tensordict import TensorDict
+from torch import nn
 
 from terrashift_rl.modules import (
     AttentionBaseline,
@@ -105,6 +106,50 @@ def test_batched_baseline_equals_one_set_per_agent(baseline_head):
         tokens = torch.cat([own[:, agent : agent + 1], others[:, members]], dim=1)
         expected = baseline_head.mlp(masked_mean(baseline_head.attention(tokens), None))
         torch.testing.assert_close(batched[:, agent], expected, atol=ATOL, rtol=1e-4)
+
+
+def k_fold_baseline(network: AttentionBaseline, features, action, agent_mask=None):
+    """b_i as the network first computed them: every agent's set materialised as a
+    [..., K, K, width] tensor of tokens and passed through the residual self-attention whole."""
+    num_agents = features.shape[-2]
+    own = network.own_state(features)
+    others = network.other_state_action(torch.cat([features, action], -1))
+    is_self = torch.eye(num_agents, dtype=torch.bool)
+    tokens = torch.where(is_self[..., None], own.unsqueeze(-2), others.unsqueeze(-3))
+    key_mask = None if agent_mask is None else agent_mask.unsqueeze(-2) | is_self
+    attended = network.attention(tokens, key_mask)
+    return network.mlp(masked_mean(attended, key_mask))
+
+
+@pytest.mark.parametrize("num_agents", [1, 4, 16])
+@pytest.mark.parametrize("batch", [(7,), (2, 3)])
+@pytest.mark.parametrize("with_mask", [False, True])
+def test_baseline_matches_the_k_fold_sets_with_their_gradients(num_agents, batch, with_mask):
+    torch.manual_seed(0)
+    network = AttentionBaseline(
+        nn.Sequential(nn.Linear(5, 16), nn.GELU(), nn.Linear(16, 16)),
+        nn.Linear(5 + 2, 16),
+        width=16,
+        num_heads=4,
+        hidden_dim=24,
+    )
+    generator = torch.Generator().manual_seed(1)
+    features = torch.randn(*batch, num_agents, 5, generator=generator)
+    action = torch.rand(*batch, num_agents, 2, generator=generator) * 2 - 1
+    mask = None
+    if with_mask:
+        mask = torch.rand(*batch, num_agents, generator=generator) < 0.7
+    outputs = {}
+    for name, forward in (("reference", k_fold_baseline), ("network", AttentionBaseline.forward)):
+        network.zero_grad()
+        baseline = forward(network, features, action, mask)
+        (baseline * torch.linspace(-1, 1, baseline.numel()).view_as(baseline)).sum().backward()
+        grads = {key: p.grad.clone() for key, p in network.named_parameters()}
+        outputs[name] = (baseline.detach(), grads)
+    reference, network_outputs = outputs["reference"], outputs["network"]
+    torch.testing.assert_close(network_outputs[0], reference[0], atol=ATOL, rtol=1e-4)
+    for key, grad in reference[1].items():
+        torch.testing.assert_close(network_outputs[1][key], grad, atol=ATOL, rtol=1e-4, msg=key)
 
 
 # --- the generic critics: flat per-agent observations, plain sizes ----------------------------
