@@ -21,11 +21,12 @@ import contextlib
 import functools
 import math
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, fields
 from typing import Literal
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
 from tensordict.utils import NestedKey
 from torch import distributions as d
@@ -133,18 +134,13 @@ class MAPOCAValueEstimator:
     ) -> TensorDictBase:
         """Writes the value, value target, baselines and advantages into ``tensordict``.
 
-        ``params`` and ``target_params`` are there for the call torchrl's PPO and MAPPO
-        examples make, ``loss.value_estimator(data, params=loss.critic_network_params,
-        target_params=loss.target_critic_network_params)``: both are ``None`` for this loss,
-        whose networks hold their parameters, and any other value is refused.
+        Keyword Args:
+            params: the critics' parameters for V(s_t) and the baselines, laid out as
+                ``loss.critic_network_params`` (which holds the networks' own, as do
+                ``None`` and its ``detach()``), as torchrl's PPO and MAPPO examples pass them.
+            target_params: the critics' parameters for V(s_{t+1}), laid out alike;
+                ``loss.target_critic_network_params`` and ``None`` are the networks' own.
         """
-        if params is not None or target_params is not None:
-            raise ValueError(
-                "MAPOCALoss runs its networks with the parameters they hold (the loss is not "
-                "functional: loss.critic_network_params and loss.target_critic_network_params "
-                "are None). Pass params=None and target_params=None, or load other weights "
-                "into the networks with load_state_dict."
-            )
         loss = self.loss
         keys = loss.tensor_keys
         if tensordict.batch_dims == 0:
@@ -166,12 +162,20 @@ class MAPOCAValueEstimator:
         elements = None
         if self.max_batch is not None:
             elements = self.max_batch * math.prod(root.batch_size[1:])
-        with set_exploration_type(ExplorationType.DETERMINISTIC), set_recurrent_mode(False):
+        with (
+            set_exploration_type(ExplorationType.DETERMINISTIC),
+            set_recurrent_mode(False),
+            loss._critic_parameters(params, "params"),
+        ):
             state_value, baseline = self._critics(root, with_baseline=True, elements=elements)
         agent_mask = loss._agent_mask(tensordict, baseline)
         agent_shape = baseline.shape[:-1]
         done = loss._team_flag(tensordict, "done", agent_mask, agent_shape)
-        with set_exploration_type(ExplorationType.DETERMINISTIC), set_recurrent_mode(False):
+        with (
+            set_exploration_type(ExplorationType.DETERMINISTIC),
+            set_recurrent_mode(False),
+            loss._critic_parameters(target_params, "target_params"),
+        ):
             if self.reuse_root_values:
                 # runs on "next" where step t + 1's root is another episode or outside the batch
                 fresh = done.squeeze(-1).clone()
@@ -303,12 +307,16 @@ class MAPOCALoss(LossModule):
     are float buffers that torchrl's ``LossModule`` lets a schedule assign in place:
     ``loss.entropy_coeff = 0.001`` keeps device and dtype.
 
-    Like torchrl's losses built with ``functional=False``, the loss runs its networks with the
-    parameters they hold: ``critic_network_params`` and ``target_critic_network_params`` are
-    ``None``, so the call of torchrl's PPO examples, ``loss.value_estimator(data,
+    The loss runs its networks with the parameters they hold (they are plain submodules, so
+    that a trunk they share trains through every term), and exposes the critics' parameters as
+    torchrl's PPO losses do: :attr:`critic_network_params`, a ``TensorDictParams`` of the value
+    and baseline networks' parameters, and :attr:`target_critic_network_params`, their detached
+    data. The call of torchrl's PPO examples, ``loss.value_estimator(data,
     params=loss.critic_network_params, target_params=loss.target_critic_network_params)``,
-    works. :attr:`in_keys` lists the keys the two passes require, and an input that is missing
-    or of the wrong shape raises an error naming its key and the shape expected.
+    works, with ``params=loss.critic_network_params.detach()`` too, and other parameters of the
+    same layout run the estimation pass with them. :attr:`in_keys` lists the keys the two
+    passes require, and an input that is missing or of the wrong shape raises an error naming
+    its key and the shape expected.
 
     The defaults are :class:`~torchrl.objectives.ClipPPOLoss`'s (``clip_epsilon=0.2``,
     ``entropy_coeff=0.01``, ``value_coeff`` as its ``critic_coeff=1.0``, a smooth-L1 critic
@@ -534,10 +542,6 @@ class MAPOCALoss(LossModule):
             (set(value_network.in_keys) | set(baseline_network.in_keys)) & actor_outputs
         )
         self._in_keys = None
-        # torchrl's losses built with functional=False hold these as None; the PPO-style call
-        # value_estimator(data, params=..., target_params=...) passes them on
-        self.critic_network_params = None
-        self.target_critic_network_params = None
         # what the last backward pass went through (see _warn_if_baseline_left_out)
         self._backward_reached: dict[str, bool] | None = None
         self._warned_baseline_left_out = False
@@ -549,6 +553,42 @@ class MAPOCALoss(LossModule):
     @property
     def functional(self) -> bool:
         return False
+
+    @property
+    def critic_network_params(self) -> TensorDictParams:
+        """The value and baseline networks' parameters and buffers (the tensors themselves, not
+        copies), under ``"value_network"`` and ``"baseline_network"``: what torchrl's PPO
+        losses hold as ``critic_network_params``. Not registered as a submodule: the networks
+        are, and the state dict holds their tensors once."""
+        return TensorDictParams(
+            TensorDict({name: TensorDict.from_module(getattr(self, name)) for name in _CRITICS}),
+            no_convert=True,
+        )
+
+    @property
+    def target_critic_network_params(self) -> TensorDictBase:
+        """:attr:`critic_network_params`' data, detached: as in torchrl's PPO losses, which have
+        no target critic, the same values."""
+        return self.critic_network_params.data
+
+    @contextlib.contextmanager
+    def _critic_parameters(self, params: TensorDictBase | None, name: str) -> Iterator[None]:
+        """A context in which the value and baseline networks run with ``params`` (laid out as
+        :attr:`critic_network_params`); with ``None``, with their own."""
+        if params is None:
+            yield
+            return
+        if not isinstance(params, TensorDictBase) or set(params.keys()) != set(_CRITICS):
+            keys = list(params.keys()) if isinstance(params, TensorDictBase) else type(params)
+            raise ValueError(
+                f"{name} must be laid out as loss.critic_network_params, a TensorDict with the "
+                f"entries {list(_CRITICS)}, got {keys}."
+            )
+        with (
+            params["value_network"].to_module(self.value_network),
+            params["baseline_network"].to_module(self.baseline_network),
+        ):
+            yield
 
     def set_keys(self, **kwargs: NestedKey | None) -> None:
         """Sets tensordict keys; ``group`` moves the keys that live in the current group.
@@ -997,6 +1037,10 @@ class MAPOCALoss(LossModule):
         with torch.no_grad():
             clip_fraction = _masked_mean((change != clipped_change).to(loss.dtype), mask)
         return _masked_mean(torch.maximum(loss, clipped_loss), mask), clip_fraction
+
+
+_CRITICS = ("value_network", "baseline_network")
+"""The loss's critics, as :attr:`MAPOCALoss.critic_network_params` names their parameters."""
 
 
 def _as_tuple(key: NestedKey) -> tuple[str, ...]:

@@ -9,7 +9,7 @@ import warnings
 
 import pytest
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictParams
 from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -74,20 +74,74 @@ def collect(loss: MAPOCALoss, *, seed: int = 1) -> TensorDict:
         return loss.actor_network(data)
 
 
-def test_ppo_examples_value_estimator_call_works():
+ESTIMATES = ("value_target", "state_value", ("agents", "advantage"), ("agents", "baseline"))
+
+
+@pytest.mark.parametrize("detach", [False, True])
+def test_ppo_examples_value_estimator_call_works(detach):
     loss = make_loss()
     data, expected = collect(loss), collect(loss)
+    params = loss.critic_network_params
     loss.value_estimator(
         data,
-        params=loss.critic_network_params,
+        params=params.detach() if detach else params,
         target_params=loss.target_critic_network_params,
     )
     loss.value_estimator(expected)
-    for key in ("value_target", "state_value", ("agents", "advantage"), ("agents", "baseline")):
+    for key in ESTIMATES:
         torch.testing.assert_close(data[key], expected[key])
-    parameters = TensorDict.from_module(loss.value_network)
-    with pytest.raises(ValueError, match="params=None and target_params=None"):
-        loss.value_estimator(data, params=parameters)
+
+
+def test_critic_params_are_laid_out_and_behave_as_clip_ppo_loss_s():
+    loss = make_loss()
+    ppo = ClipPPOLoss(make_actor(), loss.value_network)
+    params, target = loss.critic_network_params, loss.target_critic_network_params
+    assert isinstance(params, TensorDictParams) and isinstance(
+        ppo.critic_network_params, TensorDictParams
+    )
+    assert type(target) is type(ppo.target_critic_network_params)
+    # the networks' own tensors, each network's under its name; the target detached, equal
+    for name in ("value_network", "baseline_network"):
+        network = getattr(loss, name)
+        own = dict(network.named_parameters())
+        held = {".".join(key): value for key, value in params[name].items(True, True)}
+        assert own.keys() <= held.keys()
+        assert all(held[key] is parameter for key, parameter in own.items())
+        torch.testing.assert_close(target[name], params[name].data)
+    for leaf in (target, params.detach(), ppo.target_critic_network_params):
+        assert not any(value.requires_grad for value in leaf.values(True, True))
+    assert all(value.requires_grad for value in params.values(True, True))
+    # not registered: the state dict holds every tensor once, under the networks' names
+    assert not any(key.startswith("critic_network_params") for key in loss.state_dict())
+
+
+def test_other_critic_params_run_the_estimation_with_them():
+    loss, moved = make_loss(), make_loss()
+    with torch.no_grad():
+        for parameter in moved.value_network.parameters():
+            parameter.add_(0.1)
+        for parameter in moved.baseline_network.parameters():
+            parameter.mul_(1.5)
+    own = loss.critic_network_params.detach().clone()
+    data, expected, mixed = collect(loss), collect(loss), collect(loss)
+    loss.value_estimator(
+        data,
+        params=moved.critic_network_params.detach(),
+        target_params=moved.target_critic_network_params,
+    )
+    moved.value_estimator(expected)
+    for key in ESTIMATES:
+        torch.testing.assert_close(data[key], expected[key])
+    # the networks get their own back
+    assert (loss.critic_network_params.detach() == own).all()
+    # target_params give V(s_{t+1}) alone: the old value and baselines are params'
+    loss.value_estimator(mixed, target_params=moved.target_critic_network_params)
+    own_estimate = loss.value_estimator(collect(loss))
+    for key in ("state_value", ("agents", "baseline")):
+        torch.testing.assert_close(mixed[key], own_estimate[key])
+    assert not torch.allclose(mixed["value_target"], own_estimate["value_target"])
+    with pytest.raises(ValueError, match="params must be laid out as loss.critic_network_params"):
+        loss.value_estimator(data, params=TensorDict.from_module(loss.value_network))
 
 
 def test_in_keys_are_exactly_what_the_two_passes_need():
