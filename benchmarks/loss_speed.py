@@ -10,12 +10,14 @@ MAPOCALoss has the README's critics, ``CentralValue(10, width=64, depth=1)`` and
 ``MultiAgentMLP`` critic (2 x 128). Every measurement runs in a fresh process, on one CPU
 thread by default (``--threads``).
 
-Time per update is the median of ``--repeats`` updates after one warm-up. Peak memory is what
+Time per update is the median of ``--repeats`` updates after one warm-up, wall-clock and
+processor time; the ratios are of processor time on CPU (steadier where other work shares the
+processor), of wall-clock time on CUDA. Peak memory is what
 one update holds at most beyond what was there before it: on CUDA
 ``torch.cuda.max_memory_allocated``; on CPU the process's peak resident set
 (``resource.getrusage``) less its resident set before the first update. With ``--parts`` it
-also times the parts of one mini-batch step apart (forward and backward of each network, the
-rest of the loss, the optimiser) and of the value-estimation pass.
+also times (same clock) the parts of one mini-batch step apart (forward and backward of each
+network, the rest of the loss, the optimiser) and of the value-estimation pass.
 
     python benchmarks/loss_speed.py                      # CPU, K = 4 and 16
     python benchmarks/loss_speed.py --device cuda --parts
@@ -159,17 +161,18 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def _timed(function, device: torch.device, repeats: int) -> float:
-    """Median seconds of ``repeats`` calls after one warm-up."""
+def _timed(function, device: torch.device, repeats: int) -> tuple[float, float]:
+    """Median wall-clock and processor seconds of ``repeats`` calls after one warm-up."""
     function()
-    seconds = []
+    wall, processor = [], []
     for _ in range(repeats):
         _sync(device)
-        start = time.perf_counter()
+        start, start_processor = time.perf_counter(), time.process_time()
         function()
         _sync(device)
-        seconds.append(time.perf_counter() - start)
-    return statistics.median(seconds)
+        wall.append(time.perf_counter() - start)
+        processor.append(time.process_time() - start_processor)
+    return statistics.median(wall), statistics.median(processor)
 
 
 def _resident_bytes() -> int:
@@ -198,15 +201,15 @@ def measure(method: str, num_agents: int, args: argparse.Namespace) -> dict:
         before = _resident_bytes()
         update(loss, optimiser, batch, args.minibatch)
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - before
+    wall, processor = _timed(
+        lambda: update(loss, optimiser, collected.clone(), args.minibatch), device, args.repeats
+    )
     row = {
         "method": method,
         "agents": num_agents,
         "parameters": sum(p.numel() for p in loss.parameters()),
-        "update_s": _timed(
-            lambda: update(loss, optimiser, collected.clone(), args.minibatch),
-            device,
-            args.repeats,
-        ),
+        "update_s": wall,
+        "update_processor_s": processor,
         "peak_memory_mb": peak / 2**20,
     }
     if args.parts:
@@ -252,7 +255,12 @@ def parts(
         timed["critic"] = lambda: backward(
             loss.critic_network(samples.copy())[loss.tensor_keys.value]
         )
-    ms = {name: 1e3 * _timed(function, device, args.repeats) for name, function in timed.items()}
+
+    def milliseconds(function) -> float:
+        wall, processor = _timed(function, device, args.repeats)
+        return 1e3 * (processor if device.type == "cpu" else wall)
+
+    ms = {name: milliseconds(function) for name, function in timed.items()}
     networks = sum(
         ms[name] for name in ("actor", "value network", "baseline network", "critic") if name in ms
     )
@@ -262,24 +270,22 @@ def parts(
 
     root, next_step = collected.exclude("next"), collected["next"]
     with torch.no_grad():
-        ms["estimation"] = 1e3 * _timed(
-            lambda: estimate(loss, collected.clone()), device, args.repeats
-        )
+        ms["estimation"] = milliseconds(lambda: estimate(loss, collected.clone()))
         if isinstance(loss, MAPOCALoss):
 
             def critics() -> None:
                 loss.baseline_network(loss.value_network(root.copy()))
 
-            ms["estimation: critics (collected)"] = 1e3 * _timed(critics, device, args.repeats)
-            ms["estimation: critics (next)"] = 1e3 * _timed(
-                lambda: loss.value_network(next_step.copy()), device, args.repeats
+            ms["estimation: critics (collected)"] = milliseconds(critics)
+            ms["estimation: critics (next)"] = milliseconds(
+                lambda: loss.value_network(next_step.copy())
             )
         else:
-            ms["estimation: critics (collected)"] = 1e3 * _timed(
-                lambda: loss.critic_network(root.copy()), device, args.repeats
+            ms["estimation: critics (collected)"] = milliseconds(
+                lambda: loss.critic_network(root.copy())
             )
-            ms["estimation: critics (next)"] = 1e3 * _timed(
-                lambda: loss.critic_network(next_step.copy()), device, args.repeats
+            ms["estimation: critics (next)"] = milliseconds(
+                lambda: loss.critic_network(next_step.copy())
             )
         ms["estimation: returns"] = (
             ms["estimation"]
@@ -313,8 +319,11 @@ def main() -> None:
     print(
         f"{results['device']}, {args.envs} x {args.steps} frames, mini-batches of {args.minibatch}"
     )
-    header = ("K", "method", "params", "update s", "peak MB", "time x", "mem x")
-    print("{:>3s} {:7s} {:>7s} {:>9s} {:>8s} {:>7s} {:>6s}".format(*header))
+    header = ("K", "method", "params", "wall s", "cpu s", "peak MB", "time x", "mem x")
+    print("{:>3s} {:7s} {:>7s} {:>8s} {:>8s} {:>8s} {:>7s} {:>6s}".format(*header))
+    # on a CPU shared with other work, the processor time the update took is the steadier
+    clock = "update_processor_s" if device.type == "cpu" else "update_s"
+    results["time_ratio_of"] = clock
     # a fresh process per measurement: the CPU peak is the process's, and nothing is cached
     context = get_context("spawn")
     for num_agents in args.agents:
@@ -324,12 +333,13 @@ def main() -> None:
                 rows[method] = pool.submit(measure, method, num_agents, args).result()
         for method in METHODS:
             row = rows[method]
-            row["time_ratio"] = row["update_s"] / rows["MAPPO"]["update_s"]
+            row["time_ratio"] = row[clock] / rows["MAPPO"][clock]
             row["memory_ratio"] = row["peak_memory_mb"] / rows["MAPPO"]["peak_memory_mb"]
             results["rows"].append(row)
             print(
-                f"{num_agents:3d} {method:7s} {row['parameters']:7d} {row['update_s']:9.3f} "
-                f"{row['peak_memory_mb']:8.1f} {row['time_ratio']:7.2f} {row['memory_ratio']:6.2f}"
+                f"{num_agents:3d} {method:7s} {row['parameters']:7d} {row['update_s']:8.3f} "
+                f"{row['update_processor_s']:8.3f} {row['peak_memory_mb']:8.1f} "
+                f"{row['time_ratio']:7.2f} {row['memory_ratio']:6.2f}"
             )
         write_results(out, results)
         if args.parts:

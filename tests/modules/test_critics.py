@@ -154,7 +154,43 @@ def test_baseline_matches_the_k_fold_sets_with_their_gradients(num_agents, batch
 
 # --- the generic critics: flat per-agent observations, plain sizes ----------------------------
 
+
 OBS_DIM, ACTION_DIM = 5, 2
+
+
+@pytest.mark.parametrize("num_agents", [3, 16])
+def test_baseline_encodes_and_projects_each_agent_once(num_agents):
+    """What keeps the baselines at a small multiple of the value's cost: the encoders see K
+    agents, and the attention's per-token layers 2K tokens (g(x_i) and f(x_j, a_j) once
+    each), not the K sets of K tokens."""
+    network = CounterfactualBaseline(OBS_DIM, ACTION_DIM, width=8, depth=1, num_heads=2).module
+    rows: dict[str, list[int]] = {}
+
+    def count(name):
+        def hook(module, inputs, output):
+            rows.setdefault(name, []).append(inputs[0].shape[:-1].numel())
+
+        return hook
+
+    attention = network.attention
+    layers = {
+        "own_state": network.own_state,
+        "other_state_action": network.other_state_action,
+        "input_norm": attention.input_norm,
+        "query_projection": attention.attention.query_projection,
+        "key_value_projection": attention.attention.key_value_projection,
+    }
+    for name, layer in layers.items():
+        layer.register_forward_hook(count(name))
+    batch = 5
+    network(torch.randn(batch, num_agents, OBS_DIM), torch.randn(batch, num_agents, ACTION_DIM))
+    assert rows == {
+        "own_state": [batch * num_agents],
+        "other_state_action": [batch * num_agents],
+        "input_norm": [batch * 2 * num_agents],
+        "query_projection": [batch * 2 * num_agents],
+        "key_value_projection": [batch * 2 * num_agents],
+    }
 
 
 @pytest.fixture

@@ -144,6 +144,36 @@ def test_other_critic_params_run_the_estimation_with_them():
         loss.value_estimator(data, params=TensorDict.from_module(loss.value_network))
 
 
+def test_each_pass_encodes_every_agent_once_per_critic():
+    """The estimation pass runs V on the collected and the next states and the baselines on
+    the collected ones; a loss call runs each once; every encoder sees K agents per sample."""
+    loss = make_loss()
+    data = collect(loss)
+    rows: dict[str, list[int]] = {}
+    encoders = {
+        "value": loss.value_network.module.encoder,
+        "own_state": loss.baseline_network.module.own_state,
+        "other_state_action": loss.baseline_network.module.other_state_action,
+    }
+    for name, encoder in encoders.items():
+        encoder.register_forward_hook(
+            lambda module, inputs, output, name=name: rows.setdefault(name, []).append(
+                inputs[0].shape[:-1].numel()
+            )
+        )
+    loss.value_estimator(data)
+    agents = N_ENVS * N_STEPS * N_AGENTS
+    assert rows == {
+        "value": [agents, agents],
+        "own_state": [agents],
+        "other_state_action": [agents],
+    }
+    rows.clear()
+    loss(data[:, :3].reshape(-1))
+    agents = N_ENVS * 3 * N_AGENTS
+    assert rows == {"value": [agents], "own_state": [agents], "other_state_action": [agents]}
+
+
 def test_in_keys_are_exactly_what_the_two_passes_need():
     loss = make_loss()
     data = collect(loss)
