@@ -94,8 +94,8 @@ def summarise(curves: dict[str, dict[int, list[float]]], final_iterations: int) 
 
 
 TRAINING_ARGS = (
-    "env", "iterations", "num_envs", "episode_steps", "epochs", "minibatch_size", "lr", "gamma",
-    "lmbda", "entropy_coeff", "width", "depth", "critic_depth", "counterfactual_warmup",
+    "env", "agents", "iterations", "num_envs", "episode_steps", "epochs", "minibatch_size", "lr",
+    "gamma", "lmbda", "entropy_coeff", "width", "depth", "critic_depth", "counterfactual_warmup",
 )  # fmt: skip
 """The example's options that shape a run: outputs merged together must agree on them."""
 MAPOCA_ARGS = ("counterfactual_warmup",)
@@ -106,10 +106,11 @@ def merge(results: list[dict], final_iterations: int, seeds: list[int] | None = 
     """One output from several of the same settings (say, one per method, run side by side):
     the curves together (of ``seeds`` only, if given), the table recomputed, every source's
     command or settings kept."""
-    # the example's options --critic-depth and --counterfactual-warmup were 2 and 0 (their
-    # defaults) where a file predates them
+    # the example's options --agents, --critic-depth and --counterfactual-warmup were None, 2
+    # and 0 (their defaults) where a file predates them
     settings = [
-        {"critic_depth": 2, "counterfactual_warmup": 0, **result["args"]} for result in results
+        {"agents": None, "critic_depth": 2, "counterfactual_warmup": 0, **result["args"]}
+        for result in results
     ]
     merged_args = {}
     for key in TRAINING_ARGS:
@@ -175,6 +176,8 @@ def markdown(results: list[dict]) -> str:
     for result in results:
         table = result["table"]
         scenario = result["args"]["env"].removeprefix("vmas:")
+        if result["args"].get("agents") is not None:
+            scenario = f"{scenario}, {result['args']['agents']} agents"
         warmup = result["args"].get("counterfactual_warmup", 0)
         for method in METHODS:
             if method not in table:

@@ -7,6 +7,7 @@ Run it (CPU)::
     pip install vmas                                        # then any VMAS scenario:
     python examples/mapoca_vs_mappo.py --env vmas:balance --num-envs 60 --episode-steps 100 \\
         --iterations 100 --seeds 0 1 2 3 4 5 --json balance.json
+    python examples/mapoca_vs_mappo.py --env vmas:balance --agents 8 ...  # a larger team
 
 The default task, :class:`TeamNavigationEnv`, is pure torch: K agents on a plane, each steering
 to a goal of its own, and one reward for the whole team, the mean distance still to go. Every
@@ -134,10 +135,18 @@ class TeamNavigationEnv(EnvBase):
         self.generator.manual_seed(seed)
 
 
-def make_env(name: str, *, num_envs: int, episode_steps: int, seed: int) -> EnvBase:
-    """``"team_navigation"`` or ``"vmas:<scenario>"`` (needs ``pip install vmas``)."""
+def make_env(
+    name: str, *, num_envs: int, episode_steps: int, seed: int, num_agents: int | None = None
+) -> EnvBase:
+    """``"team_navigation"`` or ``"vmas:<scenario>"`` (needs ``pip install vmas``), with
+    ``num_agents`` agents (the scenario's default if None)."""
+    agents = (
+        {}
+        if num_agents is None
+        else {"num_agents" if name == "team_navigation" else "n_agents": num_agents}
+    )
     if name == "team_navigation":
-        env = TeamNavigationEnv(num_envs, episode_steps=episode_steps)
+        env = TeamNavigationEnv(num_envs, episode_steps=episode_steps, **agents)
     elif name.startswith("vmas:"):
         from torchrl.envs.libs.vmas import VmasEnv
 
@@ -147,6 +156,7 @@ def make_env(name: str, *, num_envs: int, episode_steps: int, seed: int) -> EnvB
             continuous_actions=True,
             max_steps=episode_steps,
             device="cpu",
+            **agents,
         )
     else:
         raise ValueError(f"--env must be team_navigation or vmas:<scenario>, got {name!r}")
@@ -279,7 +289,13 @@ def train(
 def run(method: str, *, env_name: str, seed: int, args: argparse.Namespace) -> list[float]:
     """One training run of ``method`` ("MAPOCA" or "MAPPO") on a fresh environment."""
     torch.manual_seed(seed)
-    env = make_env(env_name, num_envs=args.num_envs, episode_steps=args.episode_steps, seed=seed)
+    env = make_env(
+        env_name,
+        num_envs=args.num_envs,
+        episode_steps=args.episode_steps,
+        seed=seed,
+        num_agents=args.agents,
+    )
     actor = make_actor(env, width=args.width, depth=args.depth)
     loss = LOSSES[method](
         env,
@@ -309,6 +325,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--methods", nargs="+", default=list(LOSSES), choices=list(LOSSES))
     parser.add_argument("--seeds", nargs="+", type=int, default=[0])
     parser.add_argument("--iterations", type=int, default=30)
+    parser.add_argument(
+        "--agents", type=int, default=None, help="agents in the team (the task's default: None)"
+    )
     parser.add_argument("--num-envs", type=int, default=32)
     parser.add_argument("--episode-steps", type=int, default=20)
     parser.add_argument("--epochs", type=int, default=4)
