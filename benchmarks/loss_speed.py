@@ -8,16 +8,18 @@ Both losses share the actor of ``examples/mapoca_vs_mappo.py`` (a tanh-Normal ML
 MAPOCALoss has the README's critics, ``CentralValue(10, width=64, depth=1)`` and
 ``CounterfactualBaseline(10, 2, width=64, depth=1)``; MAPPOLoss its usual centralised
 ``MultiAgentMLP`` critic (2 x 128). Every measurement runs in a fresh process, on one CPU
-thread by default (``--threads``).
+thread by default (``--threads``), and memory and time are measured in separate ones.
 
 Time per update is the median of ``--repeats`` updates after one warm-up, wall-clock and
 processor time; the ratios are of processor time on CPU (steadier where other work shares the
-processor), of wall-clock time on CUDA. Peak memory is what
-one update holds at most beyond what was there before it: on CUDA
-``torch.cuda.max_memory_allocated``; on CPU the process's peak resident set
-(``resource.getrusage``) less its resident set before the first update. With ``--parts`` it
-also times (same clock) the parts of one mini-batch step apart (forward and backward of each
-network, the rest of the loss, the optimiser) and of the value-estimation pass.
+processor), of wall-clock time on CUDA. Peak memory is what an update holds at most beyond
+what was there before it, measured on the second update (the first loads code and creates the
+optimiser's state): on CUDA ``torch.cuda.max_memory_allocated``; on CPU the peak of the
+process's resident set (``VmHWM``, reset through ``/proc/self/clear_refs``) less the resident
+set before the update, with glibc giving back the blocks of 64 KiB or more when they are
+freed. With ``--parts`` it also times (same clock) the parts of one mini-batch step apart
+(forward and backward of each network, the rest of the loss, the optimiser) and of the
+value-estimation pass.
 
     python benchmarks/loss_speed.py                      # CPU, K = 4 and 16
     python benchmarks/loss_speed.py --device cuda --parts
@@ -26,7 +28,7 @@ network, the rest of the loss, the optimiser) and of the value-estimation pass.
 from __future__ import annotations
 
 import argparse
-import resource
+import os
 import statistics
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -179,13 +181,16 @@ def _timed(function, device: torch.device, repeats: int) -> tuple[float, float]:
     return statistics.median(wall), statistics.median(processor)
 
 
-def _resident_bytes() -> int:
-    with open("/proc/self/statm") as file:
-        return int(file.read().split()[1]) * resource.getpagesize()
+def _resident_kib(field: str) -> int:
+    """``VmRSS`` (the resident set) or ``VmHWM`` (its peak) of this process, in KiB."""
+    with open("/proc/self/status") as file:
+        return next(int(line.split()[1]) for line in file if line.startswith(field + ":"))
 
 
-def measure(method: str, num_agents: int, args: argparse.Namespace) -> dict:
-    """Peak memory of one update, then its time (and the parts'), in this process."""
+def setup(
+    method: str, num_agents: int, args: argparse.Namespace
+) -> tuple[LossModule, torch.optim.Optimizer, TensorDict, torch.device]:
+    """The loss, its optimiser and a collected batch, on ``args.device``."""
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     torch.manual_seed(0)
@@ -194,17 +199,29 @@ def measure(method: str, num_agents: int, args: argparse.Namespace) -> dict:
     collected = make_batch(args.envs, args.steps, num_agents, device)
     with torch.no_grad():
         loss.actor_network(collected)  # collection: actions and their log-probs
+    return loss, optimiser, collected, device
 
-    batch = collected.clone()
+
+def peak_memory(method: str, num_agents: int, args: argparse.Namespace) -> float:
+    """MiB that an update holds at most beyond what was there before it, after one warm-up
+    update (which loads code and creates the optimiser's state)."""
+    loss, optimiser, collected, device = setup(method, num_agents, args)
+    update(loss, optimiser, collected.clone(), args.minibatch)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
         before = torch.cuda.memory_allocated(device)
-        update(loss, optimiser, batch, args.minibatch)
-        peak = torch.cuda.max_memory_allocated(device) - before
-    else:
-        before = _resident_bytes()
-        update(loss, optimiser, batch, args.minibatch)
-        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - before
+        update(loss, optimiser, collected, args.minibatch)
+        return (torch.cuda.max_memory_allocated(device) - before) / 2**20
+    with open("/proc/self/clear_refs", "w") as file:
+        file.write("5")  # the peak resident set restarts from the current one
+    before = _resident_kib("VmRSS")
+    update(loss, optimiser, collected, args.minibatch)
+    return (_resident_kib("VmHWM") - before) / 2**10
+
+
+def timing(method: str, num_agents: int, args: argparse.Namespace) -> dict:
+    """Time per update (and of its parts)."""
+    loss, optimiser, collected, device = setup(method, num_agents, args)
     wall, processor = _timed(
         lambda: update(loss, optimiser, collected.clone(), args.minibatch), device, args.repeats
     )
@@ -214,10 +231,26 @@ def measure(method: str, num_agents: int, args: argparse.Namespace) -> dict:
         "parameters": sum(p.numel() for p in loss.parameters()),
         "update_s": wall,
         "update_processor_s": processor,
-        "peak_memory_mb": peak / 2**20,
     }
     if args.parts:
         row["parts_ms"] = parts(loss, optimiser, collected, args, device)
+    return row
+
+
+def measure(method: str, num_agents: int, args: argparse.Namespace) -> dict:
+    """:func:`timing`'s row with the :func:`peak_memory`, each in a fresh process: on CPU the
+    peak is the process's. The memory's process has glibc return every block of 64 KiB or more
+    to the system when freed (its threshold would otherwise rise with the first large frees),
+    so that its resident set follows the live tensors; that costs time, so not the timing's."""
+    context = get_context("spawn")
+    with ProcessPoolExecutor(1, mp_context=context) as pool:
+        row = pool.submit(timing, method, num_agents, args).result()
+    os.environ["MALLOC_MMAP_THRESHOLD_"] = str(2**16)
+    try:
+        with ProcessPoolExecutor(1, mp_context=context) as pool:
+            row["peak_memory_mb"] = pool.submit(peak_memory, method, num_agents, args).result()
+    finally:
+        del os.environ["MALLOC_MMAP_THRESHOLD_"]
     return row
 
 
@@ -329,13 +362,10 @@ def main() -> None:
     # on a CPU shared with other work, the processor time the update took is the steadier
     clock = "update_processor_s" if device.type == "cpu" else "update_s"
     results["time_ratio_of"] = clock
-    # a fresh process per measurement: the CPU peak is the process's, and nothing is cached
-    context = get_context("spawn")
     for num_agents in args.agents:
         rows = {}
         for method in ("MAPPO", *(m for m in args.methods if m != "MAPPO")):  # MAPPO: the ratios'
-            with ProcessPoolExecutor(1, mp_context=context) as pool:
-                rows[method] = pool.submit(measure, method, num_agents, args).result()
+            rows[method] = measure(method, num_agents, args)
         for method in args.methods:
             row = rows[method]
             row["time_ratio"] = row[clock] / rows["MAPPO"][clock]
