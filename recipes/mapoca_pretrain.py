@@ -37,7 +37,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from terrashift_rl.modules import make_terrashift_networks
-from terrashift_rl.training import OnPolicyTrainer, distributed, make_training_env
+from terrashift_rl.training import distributed, make_trainer, make_training_env
 from terrashift_rl.training.checkpoint import (
     RESUME_KEYS,
     WEIGHTS_KEYS,
@@ -117,7 +117,7 @@ def train(cfg: DictConfig, *, run_dir: Path) -> Path:
     env = make_training_env(
         settings.env, networks, num_envs=settings.train.num_envs, device=device, seed=seed
     )
-    trainer = OnPolicyTrainer(env, networks, settings.train)
+    trainer = make_trainer(env, networks, settings.train)
     if pretrained is not None:
         trainer.load_weights(pretrained)
     # evaluation mode (no respawn, no shaping), the same scenes at every evaluation

@@ -1,6 +1,6 @@
 """Training utilities the recipes compose: the settings room, the on-policy trainer and its
-algorithms (MA-POCA, MAPPO, IPPO), schedules, checkpoints, loggers, signals, sizing for the
-machine, data parallelism over torchrun's processes."""
+algorithms (MA-POCA, MAPPO, IPPO), TerraShift's parts and hooks for it, schedules, checkpoints,
+loggers, signals, sizing for the machine, data parallelism over torchrun's processes."""
 
 from terrashift_rl.training.algorithms import (
     ALGORITHMS,
@@ -13,14 +13,18 @@ from terrashift_rl.training.algorithms import (
 from terrashift_rl.training.checkpoint import load_checkpoint, save_checkpoint
 from terrashift_rl.training.schedules import LinearSchedule
 from terrashift_rl.training.settings import RecipeConfig, TrainConfig
-from terrashift_rl.training.trainer import (
-    MAPOCATrainer,
-    OnPolicyTrainer,
+from terrashift_rl.training.terrashift import (
     action_medians,
     concentration_metrics,
     episode_metrics,
-    iterate_until,
+    make_trainer,
     make_training_env,
+)
+from terrashift_rl.training.trainer import (
+    MAPOCATrainer,
+    OnPolicyTrainer,
+    TrainerHook,
+    iterate_until,
 )
 
 __all__ = [
@@ -35,11 +39,13 @@ __all__ = [
     "OnPolicyTrainer",
     "RecipeConfig",
     "TrainConfig",
+    "TrainerHook",
     "action_medians",
     "concentration_metrics",
     "episode_metrics",
     "iterate_until",
     "load_checkpoint",
+    "make_trainer",
     "make_training_env",
     "save_checkpoint",
 ]

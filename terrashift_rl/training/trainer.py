@@ -1,19 +1,21 @@
-"""On-policy training on batched TerraShift environments: collect, estimate, update, checkpoint.
+"""On-policy training: collect, estimate, update, checkpoint.
 
-:class:`OnPolicyTrainer` owns the environment, the networks, the loss and the optimiser; the loss
-is the algorithm ``train.algo`` names (:mod:`terrashift_rl.training.algorithms`: MA-POCA, MAPPO
-or IPPO on the same trunk and policy head). One iteration collects ``steps_per_iteration``
-decisions in every environment with the stochastic policy (dropout off), runs the algorithm's
-value-estimation pass once with the collection-time parameters (for MA-POCA, GAE from the
-centralised value and counterfactual baselines), then runs ``epochs`` passes of shuffled
-mini-batches. Mini-batches are whole per-environment sequences, and the GRU runs over
-them from the state stored at each sequence start (torchrl's recurrent mode). On CUDA the
-actor's step and each mini-batch update are replayed as CUDA graphs (``cuda_graphs``); the
-update only where the algorithm's loss runs without host synchronisation (MA-POCA's).
+:class:`OnPolicyTrainer` is handed its parts: an environment and a policy that collect, the
+algorithm (:mod:`terrashift_rl.training.algorithms`: a loss and its value-estimation pass), an
+optimiser, and hooks (:class:`TrainerHook`) for what belongs to the scene; it knows nothing of
+the scene (TerraShift's parts and hooks: :mod:`terrashift_rl.training.terrashift`). One
+iteration collects ``steps_per_iteration`` decisions in every environment with the stochastic
+policy (dropout off), runs the algorithm's value-estimation pass once with the collection-time
+parameters (for MA-POCA, GAE from the centralised value and counterfactual baselines), then runs
+``epochs`` passes of shuffled mini-batches. Mini-batches are whole per-environment sequences,
+and a recurrent policy runs over them from the state stored at each sequence start (torchrl's
+recurrent mode). On CUDA the actor's step and each mini-batch update are replayed as CUDA graphs
+(``cuda_graphs``); the update only where the algorithm's loss runs without host
+synchronisation (MA-POCA's).
 
 The collection loop is written out (``env.step_and_maybe_reset``) rather than delegated to a
 collector, because a checkpoint has to hold the tensordict carried between iterations and the
-simulator state: a resumed run then continues exactly where the killed one stopped.
+scene's state (a hook's): a resumed run then continues exactly where the killed one stopped.
 
 Built in each process of a torch.distributed group (``torchrun``), the trainers train
 data-parallel (:mod:`terrashift_rl.training.distributed`): each collects from its own
@@ -26,56 +28,77 @@ import contextlib
 import math
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
-from torchrl.envs import Compose, InitTracker, TransformedEnv
+from tensordict import NestedKey, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import set_recurrent_mode
 
-from terrashift_rl.envs import TerraShiftEnv
-from terrashift_rl.envs.baselines import ScriptedHeuristicPolicy
-from terrashift_rl.modules import TerraShiftNetworks, keys
-from terrashift_rl.sim import TerraShiftConfig
-from terrashift_rl.sim.types import ACTION_NAMES
 from terrashift_rl.training import distributed
+from terrashift_rl.training.algorithms import Algorithm
 from terrashift_rl.training.graphs import CudaGraphed
 from terrashift_rl.training.schedules import LinearSchedule
 from terrashift_rl.training.settings import TrainConfig
 
-# Collection writes these as by-products of acting; every pass of the update recomputes them
-# with the current parameters, so the batch does not keep them. (It keeps the distribution's
-# parameters, 12 numbers per agent-step, for `concentration_metrics`.)
-_RECOMPUTED_KEYS = (keys.AGENT_EMBEDDING,)
-
 _KL_STEP = 1.5
 """Factor by which the adaptive schedule moves the learning rates after a mini-batch."""
-_RANK_KEYS = ("torch_rng", "cuda_rng", "simulator", "carry")
-"""What each process of a data-parallel run holds of its own in a checkpoint."""
-_SUMMED_METRICS = ("episodes", "env_steps_per_s", "collection_steps_per_s")
-"""Metrics of a data-parallel iteration that add up over the processes (the others average)."""
+_RANK_KEYS = ("torch_rng", "cuda_rng", "carry")
+"""What each process of a data-parallel run holds of its own in a checkpoint, besides its hooks'
+state."""
+_SUMMED_METRICS = ("env_steps_per_s", "collection_steps_per_s")
+"""The trainer's metrics of a data-parallel iteration that add up over the processes (the
+others average)."""
 
 
-def make_training_env(
-    env_config: TerraShiftConfig,
-    networks: TerraShiftNetworks,
-    *,
-    num_envs: int,
-    device: torch.device,
-    seed: int,
-) -> TransformedEnv:
-    """TerraShift with the transforms the recurrent policy needs: ``is_init`` and its state."""
-    base = TerraShiftEnv(env_config, num_envs=num_envs, device=device, seed=seed)
-    primer = networks.make_tensordict_primer(env_config.num_agents)
-    return TransformedEnv(base, Compose(InitTracker(), primer))
+class TrainerHook:
+    """Work that belongs to a scene rather than to the algorithm, called by
+    :class:`OnPolicyTrainer` at fixed points of each iteration (as BenchMARL's ``Callback`` and
+    torchrl's trainer hooks are). Subclasses override what they need; every method does nothing
+    by default. TerraShift's hooks are in :mod:`terrashift_rl.training.terrashift`.
+
+    Attributes:
+        summed_metrics: names of :meth:`metrics` that add up over the processes of a
+            data-parallel run (counts); the others average.
+        state_keys: the top-level checkpoint entries :meth:`state_dict` returns.
+    """
+
+    summed_metrics: tuple[str, ...] = ()
+    state_keys: tuple[str, ...] = ()
+
+    def on_reset(self, trainer: OnPolicyTrainer, tensordict: TensorDictBase) -> None:
+        """After the first reset of a run's environments (not on a resume, whose environments
+        carry on), with the reset's output."""
+
+    def on_batch_collected(self, trainer: OnPolicyTrainer, data: TensorDictBase) -> None:
+        """After each collection, before value estimation, with the batch ``[num_envs, T]``:
+        may check it or write entries into it (a teacher's action)."""
+
+    def metrics(self, trainer: OnPolicyTrainer, data: TensorDictBase) -> dict[str, float]:
+        """After each update: the scene's metrics of the collected batch, logged with the
+        iteration's."""
+        return {}
+
+    def state_dict(self) -> dict[str, Any]:
+        """What this process holds of its own for a checkpoint (a simulator's state), under
+        :attr:`state_keys`."""
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restores :meth:`state_dict`'s entries of this process."""
 
 
 class OnPolicyTrainer:
-    """Collects and learns with the algorithm ``config.algo`` names; holds everything a
-    checkpoint needs.
+    """Collects with a policy and learns with an algorithm; holds everything a checkpoint needs.
+
+    The trainer is handed its parts: the environment and the policy that collect, the algorithm
+    (loss and value-estimation pass), the optimiser and the networks they train, and hooks for
+    what belongs to the scene (:class:`TrainerHook`). It knows nothing of the scene itself:
+    :func:`terrashift_rl.training.terrashift.make_trainer` builds TerraShift's.
 
     Attributes:
         algorithm: the loss and what the loop needs of it
@@ -83,43 +106,52 @@ class OnPolicyTrainer:
         loss: ``algorithm.loss``.
 
     Args:
-        env: a batched environment from :func:`make_training_env`.
-        networks: the actor, value and baseline networks sharing one trunk.
+        env: a batched environment; ``step_and_maybe_reset`` carries its episodes on.
+        policy: the actor, writing the action and its log-probability.
+        algorithm: the loss and its value-estimation pass.
+        optimizer: two parameter groups, the policy's (trained at ``lr_trunk_policy``, frozen
+            during a critic warm-up) then the critics' (at ``lr_value_baseline``); their
+            learning rates at construction are the schedules' starts.
         config: training hyper-parameters.
+
+    Keyword Args:
+        networks: every network the policy and the critics run, saved in checkpoints as
+            ``networks`` (the algorithm's own as ``algorithm_networks``).
+        hooks: the scene's pieces, called in order.
+        policy_outputs: the policy's outputs the batch keeps; all its ``out_keys`` if ``None``
+            (an output every update recomputes need not be kept).
     """
 
-    def __init__(self, env: TransformedEnv, networks: TerraShiftNetworks, config: TrainConfig):
+    def __init__(
+        self,
+        env: EnvBase,
+        policy: TensorDictModuleBase,
+        algorithm: Algorithm,
+        optimizer: torch.optim.Optimizer,
+        config: TrainConfig,
+        *,
+        networks: torch.nn.Module,
+        hooks: Sequence[TrainerHook] = (),
+        policy_outputs: Sequence[NestedKey] | None = None,
+    ):
         config.validate()
+        if len(optimizer.param_groups) != 2:
+            raise ValueError(
+                "the optimizer must have two parameter groups, the policy's then the critics', "
+                f"got {len(optimizer.param_groups)}"
+            )
         self.env = env
+        self.policy = policy
         self.networks = networks
         self.config = config
         self.device = env.device
-        # the estimation pass runs no bigger pieces than a training mini-batch: same memory bound
-        max_batch = math.ceil(config.num_envs / config.minibatches)
-        self.algorithm = config.loss.make(networks, max_batch=max_batch)
-        self.loss = self.algorithm.loss
-        distributed.broadcast_from_main([networks, self.algorithm.networks])
-        if config.compile:
-            networks.compile_networks()
-            for head in self.algorithm.networks.values():
-                head.module.compile()
-        loss = config.loss
-        self.teacher = (
-            ScriptedHeuristicPolicy(env.base_env.config)
-            if getattr(loss, "teacher_coeff", 0.0)  # MA-POCA's alone
-            else None
-        )
-        policy_parameters = [*networks.trunk.parameters(), *networks.policy_head.parameters()]
-        self._policy_parameters = policy_parameters
-        critic_parameters = [p for critic in self.algorithm.critics for p in critic.parameters()]
-        self.optimizer = torch.optim.AdamW(
-            [
-                {"params": policy_parameters, "lr": config.lr_trunk_policy},
-                {"params": critic_parameters, "lr": config.lr_value_baseline},
-            ],
-            weight_decay=config.weight_decay,
-        )
-        self._base_lrs = [config.lr_trunk_policy, config.lr_value_baseline]
+        self.algorithm = algorithm
+        self.loss = algorithm.loss
+        self.optimizer = optimizer
+        self.hooks = list(hooks)
+        distributed.broadcast_from_main([networks, algorithm.networks])
+        self._policy_parameters = list(optimizer.param_groups[0]["params"])
+        self._base_lrs = [float(group["lr"]) for group in optimizer.param_groups]
         self._graphs = config.cuda_graphs and self.device.type == "cuda"
         if self.device.type == "cuda":
             torch.backends.cuda.matmul.allow_tf32 = config.tf32
@@ -128,16 +160,21 @@ class OnPolicyTrainer:
             os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
             torch.use_deterministic_algorithms(True)
         self._prepare_optimizer()
-        self._parameters = [p for group in self.optimizer.param_groups for p in group["params"]]
+        self._parameters = [p for group in optimizer.param_groups for p in group["params"]]
         # tensors updated in place, so that a captured update reads each iteration's value
         self._max_grad_norm = torch.tensor(config.max_grad_norm_start, device=self.device)
-        # factors on the base learning rates of the trunk and policy, and of the critics; an
-        # adaptive schedule moves the first inside the update
+        # factors on the base learning rates of the policy and of the critics; an adaptive
+        # schedule moves the first inside the update
         self._lr_scales = torch.ones(2, device=self.device)
-        self._actor_inputs = networks.actor.in_keys
-        self._actor_outputs = [k for k in networks.actor.out_keys if k not in _RECOMPUTED_KEYS]
+        self._actor_inputs = policy.in_keys
+        self._actor_outputs = list(policy.out_keys if policy_outputs is None else policy_outputs)
+        self._rank_keys = (*_RANK_KEYS, *(key for hook in self.hooks for key in hook.state_keys))
+        self._summed_metrics = (
+            *_SUMMED_METRICS,
+            *(name for hook in self.hooks for name in hook.summed_metrics),
+        )
         self._reset_graphs()
-        n = config.schedule_iterations
+        n, loss = config.schedule_iterations, config.loss
         self.schedules = {
             "lr_factor": LinearSchedule(1.0, config.lr_end_factor, n),
             "clip_epsilon": LinearSchedule(loss.clip_epsilon_start, loss.clip_epsilon_end, n),
@@ -147,10 +184,6 @@ class OnPolicyTrainer:
                 config.max_grad_norm_start, config.max_grad_norm_end, n
             ),
         }
-        if self.teacher is not None:
-            self.schedules["teacher_coeff"] = LinearSchedule(
-                loss.teacher_coeff, loss.teacher_coeff_end, loss.teacher_iterations
-            )
         self.iteration = 0
         self.env_steps = 0
         self._carry: TensorDictBase | None = None
@@ -168,22 +201,21 @@ class OnPolicyTrainer:
         frames = data.numel()
         self.iteration += 1
         self.env_steps += frames * distributed.world_size()
-        metrics.update(episode_metrics(data))
-        metrics.update(concentration_metrics(data))
-        metrics.update(action_medians(data))
+        for hook in self.hooks:
+            metrics.update(hook.metrics(self, data))
         metrics["env_steps_per_s"] = frames / (finished - start)
         metrics["collection_steps_per_s"] = frames / (collected - start)
         metrics["update_seconds"] = finished - collected
-        return distributed.combine_metrics(metrics, summed=_SUMMED_METRICS)
+        return distributed.combine_metrics(metrics, summed=self._summed_metrics)
 
     @torch.no_grad()
     def collect(self) -> TensorDictBase:
         """``steps_per_iteration`` decisions in every environment; returns [num_envs, T]."""
         if self._carry is None:
             self._carry = self.env.reset()
-            if self.config.stagger_episodes:
-                self.env.base_env.stagger_episodes()
-        self.networks.eval()  # no dropout: the stored log-probs are the policy's own
+            for hook in self.hooks:
+                hook.on_reset(self, self._carry)
+        self.policy.eval()  # no dropout: the stored log-probs are the policy's own
         td = self._carry
         frames = []
         with set_exploration_type(ExplorationType.RANDOM), self._autocast():
@@ -194,13 +226,12 @@ class OnPolicyTrainer:
                 frames.append(step)
         self._carry = td
         data = torch.stack(frames, dim=1)
-        if self.teacher is not None:
-            observed = data.select(keys.AGENT_OBSERVATION, keys.OBJECTS, keys.OBJECTS_MASK)
-            data.set(self.loss.tensor_keys.teacher_action, self.teacher(observed).get(keys.ACTION))
+        for hook in self.hooks:
+            hook.on_batch_collected(self, data)
         return data
 
     def _act(self, tensordict: TensorDictBase) -> TensorDictBase:
-        return self.networks.actor(tensordict).select(*self._actor_outputs)
+        return self.policy(tensordict).select(*self._actor_outputs)
 
     def update(self, data: TensorDictBase) -> dict[str, float]:
         """Value estimation once, then epochs of shuffled mini-batches of sequences."""
@@ -237,8 +268,6 @@ class OnPolicyTrainer:
         metrics["critic_warmup"] = float(warmup)
         metrics["clip_epsilon"] = float(self.loss.clip_epsilon)
         metrics["entropy_coeff"] = float(self.loss.entropy_coeff)
-        if self.teacher is not None:
-            metrics["teacher_coeff"] = float(self.loss.teacher_coeff)
         metrics["estimation_seconds"] = estimation_seconds
         return metrics
 
@@ -315,12 +344,12 @@ class OnPolicyTrainer:
             "value_normalizer": (None if normalizer is None else normalizer.state_dict()),
             "torch_rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
-            "simulator": self.env.base_env.sim.state_dict(),
             "carry": None if self._carry is None else self._carry.to("cpu"),
         }
+        for hook in self.hooks:
+            state.update(hook.state_dict())
         if distributed.is_distributed():
-            own = {key: state[key] for key in _RANK_KEYS}
-            own["simulator"] = {name: value.cpu() for name, value in own["simulator"].items()}
+            own = {key: state[key] for key in self._rank_keys}
             gathered = distributed.gather_to_main(own)
             state["world_size"] = distributed.world_size()
             if gathered is not None:
@@ -350,14 +379,13 @@ class OnPolicyTrainer:
             normalizer.load_state_dict(state["value_normalizer"])
         self.iteration = state["iteration"]
         self.env_steps = state["env_steps"]
-        own = distributed.rank_entries(state, _RANK_KEYS)
+        own = distributed.rank_entries(state, self._rank_keys)
         if own is not None:
             torch.set_rng_state(own["torch_rng"])
             if own["cuda_rng"] is not None and torch.cuda.is_available():
                 torch.cuda.set_rng_state_all(own["cuda_rng"])
-            self.env.base_env.sim.load_state_dict(
-                {name: value.to(self.device) for name, value in own["simulator"].items()}
-            )
+            for hook in self.hooks:
+                hook.load_state_dict({key: own[key] for key in hook.state_keys})
             carry = own["carry"]
             self._carry = None if carry is None else carry.to(self.device)
         self._prepare_optimizer()
@@ -366,8 +394,8 @@ class OnPolicyTrainer:
         self._reset_graphs()  # the optimiser's state tensors are new
 
     def weights_state_dict(self) -> dict[str, Any]:
-        """The weights that evaluation and finetuning read: ``networks`` (the shared trunk and
-        the heads of :class:`~terrashift_rl.modules.TerraShiftNetworks`, all the actor needs),
+        """The weights that evaluation and finetuning read: ``networks`` (the networks handed
+        to the trainer; TerraShift's trunk and heads hold all the actor needs),
         ``algorithm_networks`` (the algorithm's own, IPPO's per-agent value head; empty for the
         others) and ``algo``, the algorithm they were trained with."""
         return {
@@ -400,7 +428,7 @@ class OnPolicyTrainer:
             1.0 / _KL_STEP,
             torch.where(kl < 0.5 * target, _KL_STEP, 1.0),
         )
-        base = self.config.lr_trunk_policy
+        base = self._base_lrs[0]
         scale = self._lr_scales[0]
         scale.mul_(step).clamp_(self.config.lr_min / base, self.config.lr_max / base)
         self._set_learning_rates()
@@ -422,8 +450,6 @@ class OnPolicyTrainer:
         # the loss's coefficients are buffers: assigning a float copies in place
         for name in ("clip_epsilon", "entropy_coeff", "clip_value"):
             setattr(self.loss, name, self.schedules[name](self.iteration))
-        if self.teacher is not None:
-            self.loss.teacher_coeff = self.schedules["teacher_coeff"](self.iteration)
         self._max_grad_norm.fill_(self.schedules["max_grad_norm"](self.iteration))
 
     def _prepare_optimizer(self) -> None:
@@ -466,59 +492,6 @@ class OnPolicyTrainer:
 
 MAPOCATrainer = OnPolicyTrainer
 """The trainer's name from when MA-POCA was its only algorithm."""
-
-
-def episode_metrics(data: TensorDictBase) -> dict[str, float]:
-    """Reward per decision and, over the episodes that ended in ``data``, goals and losses.
-
-    ``success_rate`` is goals over resolved objects (goals plus out-of-bounds).
-    """
-    nxt = data.get("next")
-    # every agent holds the team reward
-    metrics = {"reward_per_decision": nxt.get(("agents", "reward"))[..., 0, 0].mean().item()}
-    done = nxt.get("done").squeeze(-1)
-    episodes = int(done.sum())
-    metrics["episodes"] = float(episodes)
-    if episodes:
-        goals = nxt.get("episode_goals").squeeze(-1)[done].float()
-        lost = nxt.get("episode_out_of_bounds").squeeze(-1)[done].float()
-        resolved = goals.sum() + lost.sum()
-        metrics["goals_per_episode"] = goals.mean().item()
-        metrics["out_of_bounds_per_episode"] = lost.mean().item()
-        metrics["success_rate"] = (goals.sum() / resolved).item() if resolved > 0 else math.nan
-    return metrics
-
-
-def concentration_metrics(data: TensorDictBase) -> dict[str, float]:
-    """How sure the policy is of each action, per action dimension: for a Beta policy
-    ``concentration_<name>``, the median over the collected agent-steps of alpha + beta (a
-    policy whose amplitude grows more concentrated than its velocities tends not to steer);
-    for a Gaussian one (``model.distribution=normal``) ``action_std_<name>``, its standard
-    deviation, the same in every state."""
-    if keys.NORMAL_SCALE in data.keys(include_nested=True):
-        name, spread = "action_std", data.get(keys.NORMAL_SCALE)
-    else:
-        name = "concentration"
-        spread = data.get(keys.BETA_CONCENTRATION1) + data.get(keys.BETA_CONCENTRATION0)
-    medians = _lower_medians(spread)
-    return {f"{name}_{action}": value for action, value in zip(ACTION_NAMES, medians, strict=True)}
-
-
-def action_medians(data: TensorDictBase) -> dict[str, float]:
-    """Where the policy acts, per action dimension: ``action_median_<name>``, the median over
-    the collected agent-steps of the action the actuators received (clipped to [-1, 1]): beside
-    a dimension's concentration, whether the policy holds it near one value, and which."""
-    medians = _lower_medians(data.get(keys.ACTION).clamp(-1.0, 1.0))
-    return {
-        f"action_median_{name}": value for name, value in zip(ACTION_NAMES, medians, strict=True)
-    }
-
-
-def _lower_medians(values: torch.Tensor) -> list[float]:
-    """The lower median of each action dimension (the last) over all the others, through a
-    sort: ``median(dim)`` has no deterministic CUDA implementation."""
-    ordered = values.float().flatten(0, -2).sort(dim=0).values
-    return ordered[(len(ordered) - 1) // 2].tolist()
 
 
 def iterate_until(

@@ -23,6 +23,7 @@ from terrashift_rl.training import (
     load_checkpoint,
     make_training_env,
     save_checkpoint,
+    terrashift,
 )
 
 ALGOS = ("mapoca", "mappo", "ippo")
@@ -249,7 +250,7 @@ def test_ppo_algorithms_replay_the_actor_and_update_eagerly_on_cuda(algo):
     networks = make_terrashift_networks(TerraShiftModelConfig.small()).to("cuda")
     config = train_config(algo=algo, num_envs=8, steps_per_iteration=8, minibatches=2)
     env = make_training_env(ENV, networks, num_envs=8, device=torch.device("cuda"), seed=0)
-    trainer = OnPolicyTrainer(env, networks, config)
+    trainer = terrashift.make_trainer(env, networks, config)
     for _ in range(3):  # the third collection replays the captured actor step
         assert math.isfinite(trainer.train_iteration()["loss_total"])
     assert trainer._actor_step.captured

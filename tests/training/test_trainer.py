@@ -1,4 +1,4 @@
-"""MAPOCATrainer on the real environment: the value-estimation shortcut, compiled networks,
+"""The trainer on the real environment: the value-estimation shortcut, compiled networks,
 CUDA-graph replay of acting and updating against eager execution, and deterministic runs."""
 
 import copy
@@ -18,11 +18,12 @@ from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.sim.types import ACTION_NAMES
 from terrashift_rl.training import (
     ALGORITHMS,
-    MAPOCATrainer,
+    OnPolicyTrainer,
     TrainConfig,
     action_medians,
     concentration_metrics,
     make_training_env,
+    terrashift,
 )
 from terrashift_rl.training.graphs import CudaGraphed
 
@@ -52,7 +53,7 @@ def train_config(*, algo: str = "mapoca", **settings) -> TrainConfig:
     )
 
 
-def make_trainer(*, seed: int = 0, model: dict | None = None, **train) -> MAPOCATrainer:
+def make_trainer(*, seed: int = 0, model: dict | None = None, **train) -> OnPolicyTrainer:
     """A trainer of the small network (with ``model`` overrides) on three environments of
     ``ENV``."""
     torch.manual_seed(seed)
@@ -61,7 +62,7 @@ def make_trainer(*, seed: int = 0, model: dict | None = None, **train) -> MAPOCA
     )
     config = train_config(num_envs=3, steps_per_iteration=8, minibatches=1, **train)
     env = make_training_env(ENV, networks, num_envs=3, device=torch.device("cpu"), seed=seed)
-    return MAPOCATrainer(env, networks, config)
+    return terrashift.make_trainer(env, networks, config)
 
 
 def test_values_of_next_states_read_from_the_next_root_are_exact():
@@ -297,7 +298,7 @@ def test_replayed_updates_give_the_eager_parameters(bf16, compiled, model, scene
         env = make_training_env(scene, copied, num_envs=8, device=CUDA, seed=0)
         # the replayed trainer's networks are also compiled when ``compiled`` is set
         variant = dataclasses.replace(config, cuda_graphs=graphs, compile=compiled and graphs)
-        trainers[graphs] = MAPOCATrainer(env, copied, variant)
+        trainers[graphs] = terrashift.make_trainer(env, copied, variant)
     data = trainers[False].collect()
     for iteration in range(2):
         metrics = {}
@@ -344,7 +345,7 @@ def test_deterministic_runs_repeat_exactly_on_cuda():
         networks = make_terrashift_networks(TerraShiftModelConfig.small()).to(CUDA)
         env = make_training_env(ENV, networks, num_envs=8, device=CUDA, seed=0)
         config = TrainConfig(num_envs=8, steps_per_iteration=8, minibatches=2, deterministic=True)
-        trainer = MAPOCATrainer(env, networks, config)
+        trainer = terrashift.make_trainer(env, networks, config)
         metrics = [trainer.train_iteration() for _ in range(3)]  # the third one replays graphs
         runs.append((metrics, networks.state_dict()))
     assert torch.are_deterministic_algorithms_enabled()

@@ -1,0 +1,252 @@
+"""TerraShift's side of training: the environment the policy needs, the trainer's parts, and the
+hooks that :class:`~terrashift_rl.training.trainer.OnPolicyTrainer` calls for the scene.
+
+:func:`make_trainer` builds the trainer from TerraShift's networks and a
+:class:`~terrashift_rl.training.settings.TrainConfig`: the algorithm its loss settings build
+(``algo``), AdamW over the policy's and the critics' parameters, and the hooks
+:func:`terrashift_hooks` lists:
+
+- :class:`ActionCheck`: refuses non-finite actions once per iteration
+  (:meth:`~terrashift_rl.envs.terrashift.TerraShiftEnv.check_actions`);
+- :class:`StaggeredEpisodes`: after the first reset, spreads the episodes' step limits
+  (``train.stagger_episodes``);
+- :class:`ScriptedTeacher`: the scripted heuristic's action beside the policy's on every collected
+  step, and the loss's teacher weight along its schedule (``loss.teacher_coeff``);
+- :class:`SimulatorState`: the simulator's state in checkpoints, so that a resumed run
+  continues exactly;
+- :class:`SceneMetrics`: the episode, concentration and action metrics of every iteration.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs import Compose, InitTracker, TransformedEnv
+
+from terrashift_rl.envs import TerraShiftEnv
+from terrashift_rl.envs.baselines import ScriptedHeuristicPolicy
+from terrashift_rl.modules import TerraShiftNetworks, keys
+from terrashift_rl.objectives import MAPOCALoss
+from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.sim.types import ACTION_NAMES
+from terrashift_rl.training.algorithms import Algorithm, MAPOCAConfig
+from terrashift_rl.training.schedules import LinearSchedule
+from terrashift_rl.training.settings import TrainConfig
+from terrashift_rl.training.trainer import OnPolicyTrainer, TrainerHook
+
+__all__ = [
+    "ActionCheck",
+    "SceneMetrics",
+    "ScriptedTeacher",
+    "SimulatorState",
+    "StaggeredEpisodes",
+    "action_medians",
+    "concentration_metrics",
+    "episode_metrics",
+    "make_trainer",
+    "make_training_env",
+    "terrashift_hooks",
+]
+
+# Collection writes these as by-products of acting; every pass of the update recomputes them
+# with the current parameters, so the batch does not keep them. (It keeps the distribution's
+# parameters, 12 numbers per agent-step, for `concentration_metrics`.)
+_RECOMPUTED_KEYS = (keys.AGENT_EMBEDDING,)
+
+
+def make_training_env(
+    env_config: TerraShiftConfig,
+    networks: TerraShiftNetworks,
+    *,
+    num_envs: int,
+    device: torch.device,
+    seed: int,
+) -> TransformedEnv:
+    """TerraShift with the transforms the recurrent policy needs: ``is_init`` and its state."""
+    base = TerraShiftEnv(env_config, num_envs=num_envs, device=device, seed=seed)
+    primer = networks.make_tensordict_primer(env_config.num_agents)
+    return TransformedEnv(base, Compose(InitTracker(), primer))
+
+
+def make_trainer(
+    env: TransformedEnv, networks: TerraShiftNetworks, config: TrainConfig
+) -> OnPolicyTrainer:
+    """The trainer of ``networks`` on ``env`` (from :func:`make_training_env`) with the
+    algorithm ``config.loss`` builds, AdamW over the trunk and policy head (at
+    ``lr_trunk_policy``) and the algorithm's critics (at ``lr_value_baseline``), and
+    :func:`terrashift_hooks`."""
+    config.validate()
+    # the estimation pass runs no bigger pieces than a training mini-batch: same memory bound
+    max_batch = math.ceil(config.num_envs / config.minibatches)
+    algorithm = config.loss.make(networks, max_batch=max_batch)
+    if config.compile:
+        networks.compile_networks()
+        for head in algorithm.networks.values():
+            head.module.compile()
+    policy_parameters = [*networks.trunk.parameters(), *networks.policy_head.parameters()]
+    critic_parameters = [p for critic in algorithm.critics for p in critic.parameters()]
+    optimizer = torch.optim.AdamW(
+        [
+            {"params": policy_parameters, "lr": config.lr_trunk_policy},
+            {"params": critic_parameters, "lr": config.lr_value_baseline},
+        ],
+        weight_decay=config.weight_decay,
+    )
+    return OnPolicyTrainer(
+        env,
+        networks.actor,
+        algorithm,
+        optimizer,
+        config,
+        networks=networks,
+        hooks=terrashift_hooks(env.base_env, algorithm, config),
+        policy_outputs=[key for key in networks.actor.out_keys if key not in _RECOMPUTED_KEYS],
+    )
+
+
+def terrashift_hooks(
+    env: TerraShiftEnv, algorithm: Algorithm, config: TrainConfig
+) -> list[TrainerHook]:
+    """The hooks a TerraShift trainer runs with ``config``, in the order they are called."""
+    hooks: list[TrainerHook] = [ActionCheck(env)]  # before anything reads the batch
+    if config.stagger_episodes:
+        hooks.append(StaggeredEpisodes(env))
+    loss = config.loss
+    if isinstance(loss, MAPOCAConfig) and loss.teacher_coeff:  # MA-POCA's alone
+        schedule = LinearSchedule(
+            loss.teacher_coeff, loss.teacher_coeff_end, loss.teacher_iterations
+        )
+        hooks.append(ScriptedTeacher(env.config, algorithm.loss, schedule))
+    return [*hooks, SimulatorState(env), SceneMetrics()]
+
+
+class StaggeredEpisodes(TrainerHook):
+    """Spreads the first episodes' step limits over an episode's length after the first reset
+    (:meth:`~terrashift_rl.envs.terrashift.TerraShiftEnv.stagger_episodes`), so that the
+    environments do not all reset at the same decision."""
+
+    def __init__(self, env: TerraShiftEnv):
+        self.env = env
+
+    def on_reset(self, trainer: OnPolicyTrainer, tensordict: TensorDictBase) -> None:
+        self.env.stagger_episodes()
+
+
+class ScriptedTeacher(TrainerHook):
+    """Writes the scripted heuristic's action
+    (:class:`~terrashift_rl.envs.baselines.ScriptedHeuristicPolicy`) into every collected step,
+    under the loss's ``teacher_action`` key, and sets the loss's ``teacher_coeff`` to
+    ``schedule(iteration)`` before each update; logs it as ``teacher_coeff``."""
+
+    def __init__(self, scene: TerraShiftConfig, loss: MAPOCALoss, schedule: LinearSchedule):
+        self.policy = ScriptedHeuristicPolicy(scene)
+        self.loss = loss
+        self.schedule = schedule
+
+    def on_batch_collected(self, trainer: OnPolicyTrainer, data: TensorDictBase) -> None:
+        # the coefficient is a buffer: assigning a float copies in place (for CUDA graphs)
+        self.loss.teacher_coeff = self.schedule(trainer.iteration)
+        observed = data.select(keys.AGENT_OBSERVATION, keys.OBJECTS, keys.OBJECTS_MASK)
+        data.set(self.loss.tensor_keys.teacher_action, self.policy(observed).get(keys.ACTION))
+
+    def metrics(self, trainer: OnPolicyTrainer, data: TensorDictBase) -> dict[str, float]:
+        return {"teacher_coeff": float(self.loss.teacher_coeff)}
+
+
+class ActionCheck(TrainerHook):
+    """Raises the environment's ``ValueError`` once per iteration if the policy acted with NaN
+    or infinity during the collection
+    (:meth:`~terrashift_rl.envs.terrashift.TerraShiftEnv.check_actions`): one host
+    synchronisation per iteration instead of one per step."""
+
+    def __init__(self, env: TerraShiftEnv):
+        self.env = env
+
+    def on_batch_collected(self, trainer: OnPolicyTrainer, data: TensorDictBase) -> None:
+        self.env.check_actions()
+
+
+class SimulatorState(TrainerHook):
+    """The simulator's state in checkpoints, under ``simulator`` (on the CPU): a resumed run
+    continues the very episodes the checkpoint's was playing."""
+
+    state_keys = ("simulator",)
+
+    def __init__(self, env: TerraShiftEnv):
+        self.env = env
+
+    def state_dict(self) -> dict[str, Any]:
+        state = self.env.sim.state_dict()
+        return {"simulator": {name: value.cpu() for name, value in state.items()}}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        device = self.env.device
+        self.env.sim.load_state_dict(
+            {name: value.to(device) for name, value in state["simulator"].items()}
+        )
+
+
+class SceneMetrics(TrainerHook):
+    """:func:`episode_metrics`, :func:`concentration_metrics` and :func:`action_medians` of each
+    collected batch; ``episodes`` adds up over the processes of a data-parallel run."""
+
+    summed_metrics = ("episodes",)
+
+    def metrics(self, trainer: OnPolicyTrainer, data: TensorDictBase) -> dict[str, float]:
+        return {**episode_metrics(data), **concentration_metrics(data), **action_medians(data)}
+
+
+def episode_metrics(data: TensorDictBase) -> dict[str, float]:
+    """Reward per decision and, over the episodes that ended in ``data``, goals and losses.
+
+    ``success_rate`` is goals over resolved objects (goals plus out-of-bounds).
+    """
+    nxt = data.get("next")
+    # every agent holds the team reward
+    metrics = {"reward_per_decision": nxt.get(("agents", "reward"))[..., 0, 0].mean().item()}
+    done = nxt.get("done").squeeze(-1)
+    episodes = int(done.sum())
+    metrics["episodes"] = float(episodes)
+    if episodes:
+        goals = nxt.get("episode_goals").squeeze(-1)[done].float()
+        lost = nxt.get("episode_out_of_bounds").squeeze(-1)[done].float()
+        resolved = goals.sum() + lost.sum()
+        metrics["goals_per_episode"] = goals.mean().item()
+        metrics["out_of_bounds_per_episode"] = lost.mean().item()
+        metrics["success_rate"] = (goals.sum() / resolved).item() if resolved > 0 else math.nan
+    return metrics
+
+
+def concentration_metrics(data: TensorDictBase) -> dict[str, float]:
+    """How sure the policy is of each action, per action dimension: for a Beta policy
+    ``concentration_<name>``, the median over the collected agent-steps of alpha + beta (a
+    policy whose amplitude grows more concentrated than its velocities tends not to steer);
+    for a Gaussian one (``model.distribution=normal``) ``action_std_<name>``, its standard
+    deviation, the same in every state."""
+    if keys.NORMAL_SCALE in data.keys(include_nested=True):
+        name, spread = "action_std", data.get(keys.NORMAL_SCALE)
+    else:
+        name = "concentration"
+        spread = data.get(keys.BETA_CONCENTRATION1) + data.get(keys.BETA_CONCENTRATION0)
+    medians = _lower_medians(spread)
+    return {f"{name}_{action}": value for action, value in zip(ACTION_NAMES, medians, strict=True)}
+
+
+def action_medians(data: TensorDictBase) -> dict[str, float]:
+    """Where the policy acts, per action dimension: ``action_median_<name>``, the median over
+    the collected agent-steps of the action the actuators received (clipped to [-1, 1]): beside
+    a dimension's concentration, whether the policy holds it near one value, and which."""
+    medians = _lower_medians(data.get(keys.ACTION).clamp(-1.0, 1.0))
+    return {
+        f"action_median_{name}": value for name, value in zip(ACTION_NAMES, medians, strict=True)
+    }
+
+
+def _lower_medians(values: torch.Tensor) -> list[float]:
+    """The lower median of each action dimension (the last) over all the others, through a
+    sort: ``median(dim)`` has no deterministic CUDA implementation."""
+    ordered = values.float().flatten(0, -2).sort(dim=0).values
+    return ordered[(len(ordered) - 1) // 2].tolist()
