@@ -44,15 +44,23 @@ class TerraShiftEnv(EnvBase):
     (evaluation mode, ``respawn=False``, or the environments that ``respawn_fraction`` leaves
     out) once every sphere is resolved.
 
-    Actions of the wrong shape, dtype or device, or holding NaN or infinity, raise
-    ``ValueError`` naming ``("agents", "action")`` before anything is simulated; finite values
-    outside [-1, 1] are clipped.
+    Actions of the wrong shape, dtype or device raise ``ValueError`` naming
+    ``("agents", "action")`` before anything is simulated; finite values outside [-1, 1] are
+    clipped. Whether an action holds NaN or infinity is only known on the device, and asking at
+    every step would stop the host until the device has caught up (a synchronisation per step).
+    So a step simulates non-finite values as 0 and counts the step on the device;
+    :meth:`check_actions` (once per training iteration) then raises the ``ValueError``, naming
+    the key and how many steps since the last check held such values. With
+    ``check_every_step=True`` (for debugging) every step checks at once and raises before
+    anything is simulated.
 
     Args:
         config: scene parameters; the pretraining scene if None.
         num_envs: number of environments in the batch.
         device: ``"cpu"`` or a CUDA device.
         seed: seed of the simulator's random streams; drawn from torch's generator if None.
+        check_every_step: check every step's action for NaN and infinity before simulating it
+            (a host synchronisation per step) instead of at :meth:`check_actions`.
         **overrides: config fields to replace, e.g. ``grid_size=30``.
 
     Example:
@@ -73,6 +81,7 @@ class TerraShiftEnv(EnvBase):
         num_envs: int = 1,
         device: str | torch.device = "cpu",
         seed: int | None = None,
+        check_every_step: bool = False,
         **overrides: Any,
     ):
         config = config if config is not None else TerraShiftConfig()
@@ -83,6 +92,10 @@ class TerraShiftEnv(EnvBase):
         self.sim = Simulator(config, num_envs=num_envs, device=device, seed=seed)
         super().__init__(device=self.sim.torch_device, batch_size=torch.Size([num_envs]))
         self.config = config
+        self.check_every_step = check_every_step
+        # steps whose action held NaN or infinity, and steps taken, since the last check
+        self._non_finite_steps = torch.zeros((), dtype=torch.int64, device=self.device)
+        self._steps_since_check = 0
         self._make_specs()
 
     # --- specs ----------------------------------------------------------------------------
@@ -142,10 +155,29 @@ class TerraShiftEnv(EnvBase):
         return self._output(with_reward=False)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        self.sim.step(self._checked_action(tensordict))
+        action = self._checked_action(tensordict)
+        finite = action.isfinite()
+        self._non_finite_steps += ~finite.all()
+        self._steps_since_check += 1
+        # a non-finite value must not reach the simulator's state before a check sees it
+        self.sim.step(torch.where(finite, action, 0.0))
         return self._output(with_reward=True)
 
     # --- training helpers -----------------------------------------------------------------
+    def check_actions(self) -> None:
+        """Raises ``ValueError`` if an action since the last call held NaN or infinity (those
+        values were simulated as 0), saying in how many of the steps; one host synchronisation.
+        Each call starts a new count."""
+        non_finite, steps = int(self._non_finite_steps), self._steps_since_check
+        self._non_finite_steps.zero_()
+        self._steps_since_check = 0
+        if non_finite:
+            raise ValueError(
+                f"{(GROUP, 'action')} held NaN or infinite values in {non_finite} of the {steps} "
+                "steps since the last check (simulated as 0 there); look for non-finite "
+                "parameters or inputs of the policy"
+            )
+
     def stagger_episodes(self) -> None:
         """Sets each environment's decision counter to a uniform random value in
         [0, ``max_episode_steps``), drawn from torch's generator.
@@ -183,7 +215,7 @@ class TerraShiftEnv(EnvBase):
             raise ValueError(f"{key} must be float32, got {action.dtype}")
         if action.device != self.device:
             raise ValueError(f"{key} must be on {self.device}, got {action.device}")
-        if not torch.isfinite(action).all():
+        if self.check_every_step and not action.isfinite().all():
             raise ValueError(f"{key} holds NaN or infinite values")
         return action
 

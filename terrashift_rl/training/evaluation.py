@@ -110,8 +110,9 @@ def evaluate(
         energy per sphere delivered).
 
     Raises:
-        ValueError: if ``env`` is not a TerraShift environment, is not batched, or
-            ``episodes`` differs from its number of environments.
+        ValueError: if ``env`` is not a TerraShift environment, is not batched,
+            ``episodes`` differs from its number of environments, or ``policy`` acted with NaN
+            or infinity (:meth:`~terrashift_rl.envs.terrashift.TerraShiftEnv.check_actions`).
     """
     config = _scene_config(env)
     if len(env.batch_size) != 1:
@@ -155,6 +156,7 @@ def evaluate(
             if left == 0:
                 break
     bar.close()
+    getattr(env, "base_env", env).check_actions()
     if running.any():  # cannot happen: truncation ends every episode at the step limit
         raise RuntimeError(
             f"{int(running.sum())} environment(s) did not finish within max_episode_steps"

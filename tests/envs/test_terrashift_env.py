@@ -139,17 +139,17 @@ def test_goal_event_is_counted_and_rewarded_then_cleared_by_reset():
 
 
 @pytest.mark.parametrize(
-    ("action", "message"),
+    ("action", "message", "check_every_step"),
     [
-        (torch.zeros(N, 8, 5), "shape"),
-        (torch.zeros(N, 8, 6, dtype=torch.float64), "float32"),
-        (torch.full((N, 8, 6), float("nan")), "NaN"),
-        (torch.full((N, 8, 6), float("inf")), "NaN or infinite"),
-        (torch.zeros(N, 8, 6, device="meta"), "must be on"),
+        (torch.zeros(N, 8, 5), "shape", False),
+        (torch.zeros(N, 8, 6, dtype=torch.float64), "float32", False),
+        (torch.zeros(N, 8, 6, device="meta"), "must be on", False),
+        (torch.full((N, 8, 6), float("nan")), "NaN", True),
+        (torch.full((N, 8, 6), float("inf")), "NaN or infinite", True),
     ],
 )
-def test_bad_actions_raise_and_leave_the_state_untouched(action, message):
-    env = TerraShiftEnv(num_envs=N, seed=0)
+def test_bad_actions_raise_and_leave_the_state_untouched(action, message, check_every_step):
+    env = TerraShiftEnv(num_envs=N, seed=0, check_every_step=check_every_step)
     td = env.reset().clear_device_()  # a device-less tensordict keeps the action's device
     state = env.sim.view("agent_features").clone()
     td[GROUP, "action"] = action
@@ -158,6 +158,68 @@ def test_bad_actions_raise_and_leave_the_state_untouched(action, message):
     assert "('agents', 'action')" in str(info.value)
     torch.testing.assert_close(env.sim.view("agent_features"), state)
     assert (env.sim.view("step_count") == 0).all()
+
+
+def test_non_finite_actions_are_refused_at_the_next_check_and_never_simulated():
+    env = TerraShiftEnv(num_envs=N, seed=0)
+    td = env.reset()
+    actions = torch.zeros(3, N, 8, 6)
+    actions[1, 2, 5, 0] = float("nan")  # one value of the second step
+    actions[2, 0, 0, 3] = -float("inf")
+    for action in actions:
+        td[GROUP, "action"] = action
+        td = env.step_and_maybe_reset(td)[1]
+    assert td[GROUP, "observation"].isfinite().all()  # simulated as 0: the state stays finite
+    message = r"^\('agents', 'action'\) held NaN or infinite values in 2 of the 3 steps"
+    with pytest.raises(ValueError, match=message):
+        env.check_actions()
+    env.check_actions()  # each check starts a new count
+    # the same actions with 0 in place of the non-finite values give the same state
+    zeros = play(TerraShiftEnv(num_envs=N, seed=0), actions.nan_to_num(0.0, 0.0, 0.0))
+    torch.testing.assert_close(td[GROUP, "observation"], zeros[-1]["next", GROUP, "observation"])
+
+
+class HostSynchronisation(AssertionError):
+    pass
+
+
+def test_a_step_reads_no_tensor_value_on_the_host(monkeypatch):
+    # Each of these waits for the device on CUDA; on the CPU they are how a value would be read.
+    env = TerraShiftEnv(num_envs=N, seed=0)
+    td = env.reset()
+    td[GROUP, "action"] = torch.full((N, 8, 6), float("nan"))
+
+    def refuse(tensor, *args):
+        raise HostSynchronisation
+
+    for name in ("__bool__", "__int__", "__float__", "item", "tolist"):
+        monkeypatch.setattr(torch.Tensor, name, refuse)
+    env._step(td)
+    monkeypatch.undo()
+    with pytest.raises(ValueError, match="1 of the 1 steps"):
+        env.check_actions()
+    # the debug option reads the flag at every step
+    env.check_every_step = True
+    monkeypatch.setattr(torch.Tensor, "__bool__", refuse)
+    with pytest.raises(HostSynchronisation):
+        env._step(td)
+
+
+@pytest.mark.gpu
+def test_a_step_on_cuda_does_not_synchronise():
+    env = TerraShiftEnv(num_envs=N, seed=0, device="cuda")
+    td = env.reset()
+    td[GROUP, "action"] = torch.full((N, 8, 6), float("nan"), device="cuda")
+    env._step(td)  # Warp's first launches and graph captures may synchronise
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for _ in range(3):
+            env._step(td)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    with pytest.raises(ValueError, match="4 of the 4 steps"):
+        env.check_actions()
 
 
 def test_out_of_range_actions_are_clipped():

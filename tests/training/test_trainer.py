@@ -1,16 +1,21 @@
 """The trainer on the real environment: the value-estimation shortcut, compiled networks,
 CUDA-graph replay of acting and updating against eager execution, and deterministic runs."""
 
+import ast
 import copy
 import dataclasses
 import math
+from pathlib import Path
 
 import pytest
 import torch
 from tensordict import TensorDict
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
-from torchrl.modules import set_recurrent_mode
-from torchrl.objectives import ValueEstimators
+from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator, set_recurrent_mode
+from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
 from terrashift_rl.envs.baselines import ScriptedHeuristicPolicy
 from terrashift_rl.modules import TerraShiftModelConfig, keys, make_terrashift_networks
@@ -18,13 +23,16 @@ from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.sim.types import ACTION_NAMES
 from terrashift_rl.training import (
     ALGORITHMS,
+    Algorithm,
     OnPolicyTrainer,
     TrainConfig,
+    TrainerHook,
     action_medians,
     concentration_metrics,
     make_training_env,
     terrashift,
 )
+from terrashift_rl.training import trainer as trainer_module
 from terrashift_rl.training.graphs import CudaGraphed
 
 ENV = TerraShiftConfig(
@@ -438,3 +446,216 @@ def test_a_non_finite_parameter_stops_training_naming_it(monkeypatch):
     monkeypatch.setattr(trainer, "update", update_that_breaks_a_parameter)
     with pytest.raises(FloatingPointError, match=rf"^iteration 1 made parameter \S*{name} holds"):
         trainer.train_iteration()
+
+
+def test_a_non_finite_action_stops_the_iteration_naming_the_action(monkeypatch):
+    trainer = make_trainer()
+    act, calls = trainer._actor_step, []
+
+    def nan_at_the_third_step(inputs):
+        outputs = act(inputs)
+        calls.append(None)
+        if len(calls) == 3:
+            outputs[keys.ACTION][0, 1, 2] = math.nan
+        return outputs
+
+    monkeypatch.setattr(trainer, "_actor_step", nan_at_the_third_step)
+    message = r"^\('agents', 'action'\) held NaN or infinite values in 1 of the 8 steps"
+    with pytest.raises(ValueError, match=message):
+        trainer.train_iteration()
+    assert trainer.iteration == 0  # refused before any update
+
+
+def test_trainer_module_knows_nothing_of_terrashift():
+    tree = ast.parse(Path(trainer_module.__file__).read_text())
+    imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
+    imported |= {
+        a.name for node in ast.walk(tree) if isinstance(node, ast.Import) for a in node.names
+    }
+    project = {name for name in imported if name.startswith("terrashift_rl")}
+    assert project and all(name.startswith("terrashift_rl.training") for name in project)
+    names = {node.id for node in ast.walk(tree) if isinstance(node, ast.Name)}
+    assert not names & {"ACTION_NAMES", "TerraShiftEnv", "ScriptedHeuristicPolicy"}
+
+
+# --- the trainer on a scene of its own: one agent steers its action to a target it observes ---
+
+
+class TargetEnv(EnvBase):
+    """Observes a target in [-1, 1] drawn at each reset; the reward is minus the squared distance
+    of the action to it; episodes are truncated after ``EPISODE`` steps."""
+
+    EPISODE = 3
+
+    def __init__(self, num_envs: int):
+        super().__init__(device="cpu", batch_size=torch.Size([num_envs]))
+        n = num_envs
+        self.observation_spec = Composite(observation=Unbounded((n, 1)), shape=(n,))
+        self.action_spec = Bounded(-1.0, 1.0, shape=(n, 1))
+        self.reward_spec = Unbounded((n, 1))
+        flag = Categorical(2, shape=(n, 1), dtype=torch.bool)
+        self.done_spec = Composite(
+            done=flag, terminated=flag.clone(), truncated=flag.clone(), shape=(n,)
+        )
+        self._target = torch.zeros(n, 1)
+        self._steps = torch.zeros(n, 1, dtype=torch.int64)
+
+    def _reset(self, tensordict=None, **kwargs):
+        reset = None if tensordict is None else tensordict.get("_reset", None)
+        reset = torch.ones(self.batch_size, dtype=torch.bool) if reset is None else reset
+        reset = reset.reshape(*self.batch_size, 1)
+        self._target = torch.where(reset, torch.rand(self._target.shape) * 2 - 1, self._target)
+        self._steps = torch.where(reset, 0, self._steps)
+        return self._output(reward=None)
+
+    def _step(self, tensordict):
+        self._steps = self._steps + 1
+        return self._output(reward=-(tensordict["action"] - self._target).square())
+
+    def _output(self, reward):
+        truncated = self._steps >= self.EPISODE
+        out = TensorDict(
+            observation=self._target.clone(),
+            done=truncated,
+            terminated=torch.zeros_like(truncated),
+            truncated=truncated.clone(),
+            batch_size=self.batch_size,
+        )
+        if reward is not None:
+            out["reward"] = reward
+        return out
+
+    def _set_seed(self, seed):
+        torch.manual_seed(seed)
+
+
+class Recorder(TrainerHook):
+    """Records every call, adds a key to each batch and a metric to each iteration."""
+
+    summed_metrics = ("batches",)
+    state_keys = ("recorded_calls",)
+
+    def __init__(self):
+        self.calls = []
+
+    def on_reset(self, trainer, tensordict):
+        self.calls.append(("reset", trainer.iteration, tuple(tensordict.batch_size)))
+
+    def on_batch_collected(self, trainer, data):
+        self.calls.append(("batch", trainer.iteration, tuple(data.batch_size)))
+        data.set("seen_by_hook", torch.ones(data.shape))
+
+    def metrics(self, trainer, data):
+        seen = data.get("seen_by_hook", None) is not None
+        self.calls.append(("metrics", trainer.iteration, seen))
+        return {"batches": 1.0}
+
+    def state_dict(self):
+        return {"recorded_calls": len(self.calls)}
+
+    def load_state_dict(self, state):
+        self.calls.append(("load", state["recorded_calls"]))
+
+
+def make_target_trainer(hooks=()) -> OnPolicyTrainer:
+    """torchrl's ClipPPOLoss on TargetEnv: no part of it is TerraShift's."""
+    torch.manual_seed(0)
+    env = TargetEnv(num_envs=4)
+    actor = ProbabilisticActor(
+        TensorDictModule(
+            torch.nn.Sequential(
+                torch.nn.Linear(1, 16),
+                torch.nn.Tanh(),
+                torch.nn.Linear(16, 2),
+                NormalParamExtractor(),
+            ),
+            in_keys=["observation"],
+            out_keys=["loc", "scale"],
+        ),
+        spec=env.action_spec_unbatched,
+        in_keys=["loc", "scale"],
+        distribution_class=TanhNormal,
+        distribution_kwargs={"low": -1.0, "high": 1.0},
+        return_log_prob=True,
+    )
+    critic = ValueOperator(
+        torch.nn.Sequential(torch.nn.Linear(1, 16), torch.nn.Tanh(), torch.nn.Linear(16, 1)),
+        in_keys=["observation"],
+    )
+    loss = ClipPPOLoss(actor, critic, clip_value=0.3, functional=False)
+    loss.make_value_estimator(ValueEstimators.GAE, gamma=0.9, lmbda=0.9)
+    algorithm = Algorithm(
+        loss=loss,
+        estimate=loss.value_estimator,
+        critics=[critic],
+        critic_terms=("loss_critic",),
+        networks=torch.nn.ModuleDict(),
+        value_normalizer=None,
+        capturable=False,
+    )
+    optimizer = torch.optim.AdamW(
+        [{"params": actor.parameters(), "lr": 1e-2}, {"params": critic.parameters(), "lr": 1e-2}]
+    )
+    config = train_config(algo="mappo", num_envs=4, steps_per_iteration=8, minibatches=2)
+    networks = torch.nn.ModuleDict({"actor": actor, "critic": critic})
+    return OnPolicyTrainer(env, actor, algorithm, optimizer, config, networks=networks, hooks=hooks)
+
+
+def distance_to_target(actor) -> float:
+    """Mean squared distance of the actor's mean action to the target it observes."""
+    targets = TensorDict(observation=torch.linspace(-0.9, 0.9, 19)[:, None], batch_size=[19])
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        return (actor(targets)["action"] - targets["observation"]).square().mean().item()
+
+
+def test_the_trainer_learns_on_a_scene_that_is_not_terrashift():
+    trainer = make_target_trainer()
+    before = {name: p.detach().clone() for name, p in trainer._named_parameters()}
+    start = distance_to_target(trainer.policy)
+    for _ in range(20):
+        metrics = trainer.train_iteration()
+        assert {"loss_objective", "loss_critic", "loss_entropy", "grad_norm"} <= metrics.keys()
+        assert all(math.isfinite(metrics[key]) for key in metrics if key.startswith("loss_"))
+    assert trainer.env_steps == 20 * 4 * 8 and trainer.iteration == 20
+    for name, p in trainer._named_parameters():
+        assert not torch.equal(p, before[name]), name
+    assert distance_to_target(trainer.policy) < 0.25 * start
+    state = trainer.state_dict()
+    assert "simulator" not in state
+    assert state["networks"].keys() == trainer.networks.state_dict().keys()
+
+
+def test_hooks_are_called_in_order_and_their_metrics_and_state_kept():
+    recorder = Recorder()
+    trainer = make_target_trainer(hooks=[recorder])
+    metrics = [trainer.train_iteration() for _ in range(2)]
+    batch = (4, 8)
+    assert recorder.calls == [
+        ("reset", 0, (4,)),  # the first reset only
+        ("batch", 0, batch),
+        ("metrics", 1, True),  # after the update, with what the hook wrote into the batch
+        ("batch", 1, batch),
+        ("metrics", 2, True),
+    ]
+    assert all(m["batches"] == 1.0 for m in metrics)
+    state = trainer.state_dict()
+    assert state["recorded_calls"] == 5
+    resumed_recorder = Recorder()
+    resumed = make_target_trainer(hooks=[resumed_recorder])
+    resumed.load_state_dict(state)
+    resumed.train_iteration()  # carries the episodes on: no reset
+    assert [call[0] for call in resumed_recorder.calls] == ["load", "batch", "metrics"]
+    assert resumed_recorder.calls[0] == ("load", 5)
+
+
+def test_terrashift_hooks_follow_the_settings():
+    def kinds(**train):
+        return [type(hook).__name__ for hook in make_trainer(**train).hooks]
+
+    assert kinds() == ["ActionCheck", "StaggeredEpisodes", "SimulatorState", "SceneMetrics"]
+    assert kinds(stagger_episodes=False, teacher_coeff=0.5) == [
+        "ActionCheck",
+        "ScriptedTeacher",
+        "SimulatorState",
+        "SceneMetrics",
+    ]
