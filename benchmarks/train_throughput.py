@@ -1,4 +1,4 @@
-"""End-to-end training throughput: MAPOCATrainer iterations, collection and update together.
+"""End-to-end training throughput: OnPolicyTrainer iterations, collection and update together.
 
 Each setting (environments, epochs, mini-batches, precision, execution) trains the network
 (``--preset``, with ``--model`` fields replaced) on the pretrain scene for ``--warmup`` untimed
@@ -34,7 +34,7 @@ from torch.autograd import DeviceType
 
 from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
-from terrashift_rl.training import MAPOCATrainer, TrainConfig, make_training_env
+from terrashift_rl.training import OnPolicyTrainer, TrainConfig, make_trainer, make_training_env
 
 PRECISIONS = ("fp32", "tf32", "bf16")  # tf32: float32 with TensorFloat-32 matrix products
 # compiled: torch.compile without CUDA graphs; compiled-graphs: compiled networks replayed in them
@@ -109,7 +109,7 @@ def measure(setting: dict, args: argparse.Namespace, device: torch.device) -> di
         device=device,
         seed=0,
     )
-    trainer = MAPOCATrainer(env, networks, config)
+    trainer = make_trainer(env, networks, config)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     start = time.perf_counter()
@@ -141,7 +141,7 @@ def measure(setting: dict, args: argparse.Namespace, device: torch.device) -> di
     return result
 
 
-def profile_iteration(trainer: MAPOCATrainer, device: torch.device, rows: int) -> list[dict]:
+def profile_iteration(trainer: OnPolicyTrainer, device: torch.device, rows: int) -> list[dict]:
     """One more iteration under torch.profiler; prints and returns its costliest operators.
 
     On CUDA an operator's time is that of the kernels it launched, its share that of all

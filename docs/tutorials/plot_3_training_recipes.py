@@ -195,7 +195,7 @@ plt.show()
 # -----------------------
 # The recipes compose :mod:`terrashift_rl.training`: the settings room
 # (``RecipeConfig``), ``make_training_env``, ``make_terrashift_networks`` and
-# ``OnPolicyTrainer``, put together in ``train()`` of ``recipes/mapoca_pretrain.py``; read it
+# ``make_trainer``, put together in ``train()`` of ``recipes/mapoca_pretrain.py``; read it
 # top to bottom to see how. ``torch``
 # picks the CPU here: a GPU run only changes ``run.device``.
 print("CUDA available:", torch.cuda.is_available())
