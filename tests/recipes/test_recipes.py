@@ -750,10 +750,10 @@ def test_every_algorithm_trains_resumes_and_finetunes_from_the_recipes(tmp_path,
     first = run("mapoca_pretrain.py", f"algo={algo}", *steps, "hydra.run.dir=a", cwd=tmp_path)
     assert first.returncode == 0, first.stderr[-2000:]
     last = tmp_path / "a/checkpoints/last.pt"
-    assert load_checkpoint(last)["train_config"]["algo"] == algo
+    assert load_checkpoint(last)["algo"] == algo
     more = ("run.total_env_steps=128", "run.eval_every=null", f"run.resume={last}")
     resumed = run("mapoca_pretrain.py", f"algo={algo}", *more, "hydra.run.dir=b", cwd=tmp_path)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     assert load_checkpoint(tmp_path / "b/checkpoints/last.pt")["env_steps"] == 128
     other = run("mapoca_pretrain.py", "algo=mapoca", *more, "hydra.run.dir=c", cwd=tmp_path)
-    assert other.returncode != 0 and f"train.algo={algo}" in other.stderr
+    assert other.returncode != 0 and f"algo={algo}" in other.stderr
