@@ -104,7 +104,9 @@ progress keeps its file fresh."""
 
 def save_checkpoint(state: dict[str, Any], path: str | Path) -> Path:
     """Writes ``state`` with ``torch.save`` to a temporary file beside ``path``, flushes it to
-    disk, then renames it over ``path`` (an atomic replace on POSIX file systems).
+    disk, then renames it over ``path`` (an atomic replace on POSIX file systems). A write that
+    fails (a full disk, a read-only folder) removes its temporary file, leaves ``path`` as it
+    was and raises ``OSError`` naming ``path`` and the reason.
 
     Example:
         >>> import tempfile
@@ -117,18 +119,26 @@ def save_checkpoint(state: dict[str, Any], path: str | Path) -> Path:
         (1, [0, 1, 2], torch.Size([3]))
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    temporary = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle, temporary = tempfile.mkstemp(
+            dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"
+        )
         with os.fdopen(handle, "wb") as file:
             torch.save({key: _plain(value) for key, value in state.items()}, file)
             file.flush()
             os.fsync(file.fileno())
         os.chmod(temporary, 0o644)  # mkstemp creates owner-only files
         os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+    except BaseException as error:
+        if temporary is not None:
+            Path(temporary).unlink(missing_ok=True)
+        if not isinstance(error, OSError):
+            raise
+        kept = "the previous one is kept" if path.exists() else "there is no earlier one"
+        reason = error.strerror or error
+        raise OSError(f"checkpoint {path} could not be written ({reason}); {kept}") from None
     return path
 
 
