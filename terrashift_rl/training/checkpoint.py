@@ -39,6 +39,7 @@ from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training.algorithms import ALGORITHMS
 from terrashift_rl.training.settings import (
     TrainConfig,
+    check_loss_range,
     check_network_size,
     check_reward_range,
     override,
@@ -197,7 +198,8 @@ def check_training_state(state: dict[str, Any], path: str | Path) -> dict[str, A
     """A training checkpoint's ``state`` (loaded from ``path``) in the current layout
     (:func:`upgrade`), each entry checked before anything is built from it: every entry one of
     :data:`ENTRIES` and of its kind; the configs through the settings room, as the command line's
-    (types, ranges, known keys, the network's size, the reward's range), given back as the
+    (types, ranges, known keys, the network's size, the reward's and the loss's range), given
+    back as the
     settings classes write them; the weights of ``networks`` with the names and shapes of the
     network that ``model_config`` builds, and every floating-point tensor finite. Raises one
     ``ValueError`` naming ``path``, the entry and what it must be."""
@@ -240,6 +242,11 @@ def check_training_state(state: dict[str, Any], path: str | Path) -> dict[str, A
                 settings[key] = check(state[key], state["algo"])
             except ValueError as error:
                 raise _refused(path, key, str(error)) from None
+    if "train_config" in settings and "env_config" in settings:
+        try:
+            check_loss_range(settings["train_config"], settings["env_config"])
+        except ValueError as error:
+            raise _refused(path, "train_config", str(error)) from None
     state.update({key: dataclasses.asdict(value) for key, value in settings.items()})
     if "model_config" in settings:
         _check_weights(state["networks"], settings["model_config"], path)

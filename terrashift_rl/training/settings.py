@@ -394,9 +394,9 @@ def check_network_size(model: TerraShiftModelConfig, key: str = "model") -> None
     if count > MAX_NETWORK_PARAMETERS:
         raise ValueError(
             f"{key}: the networks would hold {count:.3g} parameters, more than the "
-            f"{MAX_NETWORK_PARAMETERS:.0e} that fit a GPU's memory with their gradients and "
-            f"optimiser state; lower {key}.embed_dim (now {model.embed_dim}), "
-            f"{key}.ffn_dim ({model.ffn_dim}) or {key}.trunk_layers ({model.trunk_layers})"
+            f"{MAX_NETWORK_PARAMETERS:,} that fit a GPU's memory with their gradients and "
+            f"optimiser state; lower {key}.embed_dim ({model.embed_dim}), {key}.ffn_dim "
+            f"({model.ffn_dim}) or {key}.trunk_layers ({model.trunk_layers})"
         )
 
 
