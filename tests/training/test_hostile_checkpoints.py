@@ -12,6 +12,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
+from test_hostile_settings import refused_in_subprocess
 from test_settings import ROOT
 
 from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
@@ -197,3 +198,14 @@ def test_a_run_from_a_checkpoint_takes_its_model_as_checked_data_not_as_override
         sized_from(path)
     assert str(path) in str(error.value) and "'${oc.env:HOSTILE_SECRET}'" in str(error.value)
     assert "the-secret" not in str(error.value)
+
+
+@pytest.mark.slow
+def test_evaluation_refuses_weights_that_do_not_fit_their_model_in_one_message(tmp_path, weights):
+    other = dataclasses.asdict(dataclasses.replace(SMALL, policy_hidden_dim=40))
+    path = save_checkpoint(weights_checkpoint(weights, model_config=other), tmp_path / "x.pt")
+    stderr = refused_in_subprocess(
+        "evaluate.py", f"checkpoint={path}", "device=cpu", cwd=tmp_path, config="evaluate"
+    )
+    assert f"checkpoint {path}, entry networks[" in stderr
+    assert "model_config's network has [40" in stderr

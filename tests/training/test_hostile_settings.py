@@ -25,13 +25,16 @@ from terrashift_rl.training.settings import (
 MAX_REFUSAL_LINES = 20
 
 
-def refused_in_subprocess(script: str, *overrides: str, cwd: Path, env: dict | None = None) -> str:
-    """Runs ``recipes/<script>`` with the smoke config and ``overrides`` writing into
+def refused_in_subprocess(
+    script: str, *overrides: str, cwd: Path, env: dict | None = None, config: str = "smoke"
+) -> str:
+    """Runs ``recipes/<script>`` with the ``config`` and ``overrides`` writing into
     ``cwd/run``; asserts that it is refused (exit status 1) in at most
     ``MAX_REFUSAL_LINES`` lines of stderr with no traceback, and that it wrote nothing in
     ``cwd`` but its run folder. Returns stderr."""
+    there = {path.name for path in cwd.iterdir()}
     result = subprocess.run(
-        [sys.executable, str(ROOT / "recipes" / script), "--config-name", "smoke", *overrides]
+        [sys.executable, str(ROOT / "recipes" / script), "--config-name", config, *overrides]
         + ["hydra.run.dir=run"],
         cwd=cwd,
         capture_output=True,
@@ -42,7 +45,7 @@ def refused_in_subprocess(script: str, *overrides: str, cwd: Path, env: dict | N
     assert result.returncode == 1, result.stderr
     assert len(result.stderr.splitlines()) <= MAX_REFUSAL_LINES, result.stderr
     assert "Traceback" not in result.stderr
-    assert {path.name for path in cwd.iterdir()} <= {"run"}
+    assert {path.name for path in cwd.iterdir()} <= {*there, "run"}
     return result.stderr
 
 
