@@ -193,7 +193,7 @@ def shown(value: Any, limit: int = 80) -> str:
 
     Example:
         >>> shown("x" * 500, limit=12)
-        "'xxxxxxxxxxx... (502 characters)"
+        "'xxxxxxxxxx... (502 characters)"
     """
     text = repr(value)
     return text if len(text) <= limit else f"{text[: limit - 1]}... ({len(text)} characters)"

@@ -408,7 +408,7 @@ def reward_bound(env: TerraShiftConfig) -> dict[str, float]:
     Example:
         >>> share = reward_bound(TerraShiftConfig())
         >>> max(share, key=share.get), f"{sum(share.values()):.0f}"
-        ('distance_scale', '211')
+        ('distance_scale', '225')
     """
     reach = 2.0 * math.sqrt(2.0) * env.out_of_bounds_xy + env.out_of_bounds_z  # any distance
     per_sphere = {
