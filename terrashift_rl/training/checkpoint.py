@@ -164,11 +164,11 @@ def load_checkpoint(
         raise FileNotFoundError(f"no checkpoint at {path}")
     try:
         with zipfile.ZipFile(path) as archive:
-            size = sum(record.file_size for record in archive.infolist())
-            if size > _memory_bytes():
+            size, memory = sum(record.file_size for record in archive.infolist()), _memory_bytes()
+            if size > memory:
                 raise ValueError(
                     f"checkpoint {path} unpacks to {size:,} bytes, more than this machine's "
-                    f"memory ({_memory_bytes():,} bytes)"
+                    f"memory ({memory:,} bytes)"
                 )
             damaged = archive.testzip()  # reads every record against its CRC
     except zipfile.BadZipFile:
@@ -197,12 +197,12 @@ def load_checkpoint(
 def check_training_state(state: dict[str, Any], path: str | Path) -> dict[str, Any]:
     """A training checkpoint's ``state`` (loaded from ``path``) in the current layout
     (:func:`upgrade`), each entry checked before anything is built from it: every entry one of
-    :data:`ENTRIES` and of its kind; the configs through the settings room, as the command line's
-    (types, ranges, known keys, the network's size, the reward's and the loss's range), given
-    back as the
-    settings classes write them; the weights of ``networks`` with the names and shapes of the
-    network that ``model_config`` builds, and every floating-point tensor finite. Raises one
-    ``ValueError`` naming ``path``, the entry and what it must be."""
+    :data:`ENTRIES` and of its kind; the configs through the settings room, as the command
+    line's are (types, ranges, known keys, the network's size, the reward's and the loss's
+    range), given back as the settings classes write them; the weights of ``networks`` with the
+    names and shapes of the network that ``model_config`` builds; every floating-point tensor of
+    the weights, the optimiser and the return statistics finite. Raises one ``ValueError``
+    naming ``path``, the entry and what it must be."""
     for key, value in state.items():
         kinds = ENTRIES.get(key)
         if kinds is None:

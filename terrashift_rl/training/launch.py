@@ -5,6 +5,7 @@ message alone."""
 
 from __future__ import annotations
 
+import fcntl
 import os
 import tempfile
 from collections.abc import Iterator, Sequence
@@ -83,15 +84,16 @@ def cpu_overrides(
         ['train.num_envs=32', 'run.eval_episodes=16']
     """
     given_keys = [*_keys(given), *taken]
-
-    def overlaps(key: str, other: str) -> bool:
-        return key == other or key.startswith(f"{other}.") or other.startswith(f"{key}.")
-
     return [
         default
         for default, key in zip(defaults, _keys(defaults), strict=True)
-        if not any(overlaps(key, other) for other in given_keys)
+        if not any(_overlaps(key, other) for other in given_keys)
     ]
+
+
+def _overlaps(key: str, other: str) -> bool:
+    """Whether setting ``key`` and ``other`` change a common setting (one holds the other)."""
+    return key == other or key.startswith(f"{other}.") or other.startswith(f"{key}.")
 
 
 def size_for_the_machine(
@@ -123,7 +125,7 @@ def size_for_the_machine(
         model = {
             key: value
             for key, value in saved["model_config"].items()
-            if not any(f"model.{key}" == other or other == "model" for other in given_keys)
+            if not any(_overlaps(f"model.{key}", other) for other in given_keys)
         }
         changed = [key for key, value in model.items() if cfg.model[key] != value]
     sized = []
@@ -169,10 +171,12 @@ def hydra_overrides_of_other_ranks() -> list[str]:
 @contextmanager
 def claim_run_folder(run_dir: str | Path) -> Iterator[None]:
     """Holds ``run_dir`` for this run while the block runs: checks that it and its
-    ``checkpoints`` folder are writable (:func:`check_writable`), and writes this process's id
-    into ``run_dir/run.lock``, removed at the end. Another live run's lock is refused naming
-    its process; a lock whose process is gone (a run that was killed) is taken over. In a
-    data-parallel run only rank 0 writes, so only rank 0 claims the folder."""
+    ``checkpoints`` folder are writable (:func:`check_writable`), then takes an exclusive lock
+    (``flock``) on ``run_dir/run.lock`` and writes this process's id into it; the file goes at
+    the end. A folder whose lock another live run holds is refused naming that run's process.
+    The system drops a lock with its process, so a run that was killed (``kill -9`` included)
+    leaves a file that the next run takes over. In a data-parallel run only rank 0 writes, so
+    only rank 0 claims the folder."""
     if not distributed.is_main_process():
         yield
         return
@@ -180,42 +184,27 @@ def claim_run_folder(run_dir: str | Path) -> Iterator[None]:
     check_writable(run_dir, "the run folder")
     check_writable(run_dir / "checkpoints", "the checkpoints folder")
     lock = run_dir / LOCK_NAME
-    me = _process_identity(os.getpid())
     while True:
+        handle = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
         try:
-            with os.fdopen(os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644), "w") as f:
-                f.write(me)
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(handle, 32).decode(errors="replace").strip() or "unknown"
+            os.close(handle)
+            raise ValueError(
+                f"the run folder {run_dir} is in use by the run of process {holder} (it holds "
+                f"{LOCK_NAME}); wait for it to end or write elsewhere (hydra.run.dir=<folder>)"
+            ) from None
+        if lock.exists() and os.stat(lock).st_ino == os.fstat(handle).st_ino:
             break
-        except FileExistsError:
-            holder = lock.read_text(errors="replace").strip()
-            pid = holder.split()[0] if holder else ""
-            if pid.isdigit() and _process_identity(int(pid)) == holder:
-                raise ValueError(
-                    f"the run folder {run_dir} is in use by the run of process {pid} (its "
-                    f"{LOCK_NAME}); wait for it to end or write elsewhere (hydra.run.dir=<folder>)"
-                ) from None
-            lock.unlink(missing_ok=True)  # left by a run that was killed: taken over
+        os.close(handle)  # the file was removed by the run that held it: lock its successor
     try:
+        os.ftruncate(handle, 0)
+        os.write(handle, str(os.getpid()).encode())
         yield
     finally:
-        if lock.is_file() and lock.read_text(errors="replace").strip() == me:
-            lock.unlink()
-
-
-def _process_identity(pid: int) -> str:
-    """``pid`` and its start time (from ``/proc``), so that a reused process id is not taken
-    for the run that held a lock; ``""`` when no such process lives."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return ""
-    except PermissionError:  # alive, another user's
-        pass
-    try:  # field 22 of /proc/<pid>/stat, after the parenthesised command name
-        started = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
-    except (OSError, IndexError):
-        started = ""
-    return f"{pid} {started}".strip()
+        lock.unlink(missing_ok=True)  # while still locked, so no run locks a removed file
+        os.close(handle)
 
 
 def check_writable(folder: str | Path, role: str) -> None:

@@ -30,8 +30,7 @@ def dead_pid() -> int:
 
 def test_a_run_folder_is_held_while_the_run_goes_on_and_freed_after(tmp_path):
     with claim_run_folder(tmp_path):
-        holder = (tmp_path / LOCK_NAME).read_text().split()
-        assert holder[0] == str(os.getpid())
+        assert (tmp_path / LOCK_NAME).read_text() == str(os.getpid())
         with pytest.raises(ValueError) as error, claim_run_folder(tmp_path):
             pass
         message = str(error.value)
@@ -39,6 +38,32 @@ def test_a_run_folder_is_held_while_the_run_goes_on_and_freed_after(tmp_path):
         assert str(os.getpid()) in message and LOCK_NAME in message
     assert not (tmp_path / LOCK_NAME).exists()
     assert (tmp_path / "checkpoints").is_dir()
+
+
+def test_a_live_run_holds_its_folder_and_a_killed_one_frees_it(tmp_path):
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLDS_THE_FOLDER, str(tmp_path)], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert holder.stdout.readline() == "holding\n"
+        in_use = f"in use by the run of process {holder.pid} "
+        with pytest.raises(ValueError, match=in_use), claim_run_folder(tmp_path):
+            pass
+    finally:
+        holder.kill()  # SIGKILL: the run gets no chance to remove its lock file
+        holder.wait()
+    assert (tmp_path / LOCK_NAME).read_text() == str(holder.pid)
+    with claim_run_folder(tmp_path):
+        assert (tmp_path / LOCK_NAME).read_text() == str(os.getpid())
+
+
+HOLDS_THE_FOLDER = """
+import sys, time
+from terrashift_rl.training.launch import claim_run_folder
+with claim_run_folder(sys.argv[1]):
+    print("holding", flush=True)
+    time.sleep(600)
+"""
 
 
 def test_the_lock_is_freed_when_the_run_fails(tmp_path):
@@ -50,16 +75,15 @@ def test_the_lock_is_freed_when_the_run_fails(tmp_path):
 @pytest.mark.parametrize(
     "left",
     [
-        lambda: f"{dead_pid()} 12345",  # a killed run's
-        lambda: f"{os.getpid()} 1",  # a killed run's process id, reused by a live process
+        lambda: str(dead_pid()),  # a killed run's
+        lambda: str(os.getpid()),  # a killed run's process id, reused by a live process
         lambda: "",  # killed between creating and writing it
-        lambda: "not a process id",
     ],
 )
 def test_a_lock_left_by_a_run_that_is_gone_is_taken_over(tmp_path, left):
     (tmp_path / LOCK_NAME).write_text(left())
     with claim_run_folder(tmp_path):
-        assert (tmp_path / LOCK_NAME).read_text().split()[0] == str(os.getpid())
+        assert (tmp_path / LOCK_NAME).read_text() == str(os.getpid())
     assert not (tmp_path / LOCK_NAME).exists()
 
 
