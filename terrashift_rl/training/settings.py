@@ -20,7 +20,9 @@ group      settings
 evaluation recipe's; :meth:`RecipeConfig.of` and :meth:`EvaluateConfig.of` build them from the
 composed Hydra config through :func:`~terrashift_rl.fields.build`, which refuses a key that its
 group lacks (also one added with ``+``), a value of the wrong type (an integer for a boolean) or
-outside its range, naming the key, the value and what is allowed. :func:`register_config_schemas`
+outside its range, naming the key, the value and what is allowed; then what the settings make
+together: the networks' size (:func:`check_network_size`) and the reward's and the loss's range in
+float32 (:func:`check_reward_range`, :func:`check_loss_range`). :func:`register_config_schemas`
 gives Hydra every group's defaults, so each field can be set as ``group.field=value``;
 :func:`override` writes a setting back as the command line sets it.
 """
