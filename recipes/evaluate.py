@@ -32,14 +32,21 @@ from terrashift_rl.training.evaluation import (
     evaluate_baselines,
     evaluation_scene,
 )
-from terrashift_rl.training.launch import resolve_device, size_for_the_machine
+from terrashift_rl.training.launch import (
+    check_warp_cache,
+    refusals_end_the_run,
+    resolve_device,
+    size_for_the_machine,
+)
 from terrashift_rl.training.settings import EvaluateConfig, register_config_schemas
 
 register_config_schemas()
 
 
 @hydra.main(version_base=None, config_path="configs", config_name="evaluate")
+@refusals_end_the_run()
 def main(cfg: DictConfig) -> None:
+    check_warp_cache()
     cfg = size_for_the_machine(cfg, device_key="device", defaults_key="cpu_defaults")
     settings = EvaluateConfig.of(cfg)  # every setting checked, naming a bad one
     device = resolve_device(settings.device, "device")

@@ -21,10 +21,11 @@ import hydra
 from mapoca_pretrain import launch  # the pretraining recipe, in this file's folder
 from omegaconf import DictConfig
 
-from terrashift_rl.training.launch import hydra_overrides_of_other_ranks
+from terrashift_rl.training.launch import hydra_overrides_of_other_ranks, refusals_end_the_run
 
 
 @hydra.main(version_base=None, config_path="configs", config_name="mapoca_finetune")
+@refusals_end_the_run()
 def main(cfg: DictConfig) -> None:
     if not cfg.run.pretrained and not cfg.run.resume:
         raise ValueError(

@@ -54,7 +54,10 @@ from terrashift_rl.training.checkpoint import (
 )
 from terrashift_rl.training.evaluation import evaluate_periodically, evaluation_scene
 from terrashift_rl.training.launch import (
+    check_warp_cache,
+    claim_run_folder,
     hydra_overrides_of_other_ranks,
+    refusals_end_the_run,
     resolve_device,
     size_for_the_machine,
 )
@@ -222,17 +225,22 @@ def train(cfg: DictConfig, *, run_dir: Path) -> Path:
 
 
 def launch(cfg: DictConfig) -> Path:
-    """:func:`train` with the config sized for the machine, in Hydra's run directory."""
+    """:func:`train` with the config sized for the machine, in Hydra's run directory, which it
+    holds (:func:`~terrashift_rl.training.launch.claim_run_folder`)."""
+    check_warp_cache()
     cfg = size_for_the_machine(
         cfg,
         device_key="run.device",
         defaults_key="run.cpu_defaults",
         model_from=("run.resume", "run.pretrained"),  # the network must be the one they hold
     )
-    return train(cfg, run_dir=Path(HydraConfig.get().runtime.output_dir))
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    with claim_run_folder(run_dir):
+        return train(cfg, run_dir=run_dir)
 
 
 @hydra.main(version_base=None, config_path="configs", config_name="mapoca_pretrain")
+@refusals_end_the_run()
 def main(cfg: DictConfig) -> None:
     launch(cfg)
 

@@ -32,6 +32,7 @@ __all__ = [
     "interval",
     "one_of",
     "setting",
+    "shown",
 ]
 
 
@@ -123,12 +124,13 @@ def build(cls: type, values: Any, group: str) -> Any:
         ValueError: video.fsp is not a setting; the settings of video are: fps
     """
     if not isinstance(values, dict):
-        raise ValueError(f"{group} must be a mapping of settings, got {values!r}")
+        raise ValueError(f"{group} must be a mapping of settings, got {shown(values)}")
     fields = {field.name: field for field in dataclasses.fields(cls)}
     unknown = [key for key in values if key not in fields]
     if unknown:
+        name = unknown[0] if isinstance(unknown[0], str) else shown(unknown[0])
         raise ValueError(
-            f"{_key(group, unknown[0])} is not a setting; the settings of "
+            f"{_key(group, name[:80])} is not a setting; the settings of "
             f"{group or 'the top level'} are: {', '.join(fields)}"
         )
     hints = typing.get_type_hints(cls)
@@ -183,7 +185,18 @@ def check_value(
     if nullable:
         text += f" or null ({null})" if null else " or null"
     if not (_is_a(value, kind) and (allowed is None or allowed.test(value))):
-        raise ValueError(f"{key} must be {text}, got {value!r}")
+        raise ValueError(f"{key} must be {text}, got {shown(value)}")
+
+
+def shown(value: Any, limit: int = 80) -> str:
+    """``repr(value)``, cut to ``limit`` characters where longer, so that a message stays one line.
+
+    Example:
+        >>> shown("x" * 500, limit=12)
+        "'xxxxxxxxxx... (502 characters)"
+    """
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[: limit - 1]}... ({len(text)} characters)"
 
 
 _TYPE_TEXT = {int: "an integer", float: "a finite number", bool: "true or false"}

@@ -10,9 +10,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from terrashift_rl.fields import above, at_least, check_fields, interval, one_of, setting
+from terrashift_rl.fields import Allowed, above, at_least, check_fields, interval, one_of, setting
 
 __all__ = ["DISTRIBUTIONS", "TerraShiftModelConfig"]
+
+STAGES = Allowed(
+    lambda value: 1 <= len(value) <= 8 and all(entry >= 1 for entry in value),
+    "a list of 1 to 8 integers, each >= 1",
+)
+"""The values of a per-stage list (the CNN stem's convolutions, the Swin stages)."""
 
 DISTRIBUTIONS = ("beta", "normal")
 """Values of :attr:`TerraShiftModelConfig.distribution`."""
@@ -65,18 +71,18 @@ class TerraShiftModelConfig:
 
     heightmap_channels: int = setting(1, at_least(1))
     """Channels of the heightmap observation (coordinate channels are added on top)."""
-    cnn_channels: list[int] = setting([16, 32, 32])
+    cnn_channels: list[int] = setting([16, 32, 32], STAGES)
     """Output channels of the CNN stem's convolutions."""
-    cnn_kernels: list[int] = setting([5, 3, 3])
+    cnn_kernels: list[int] = setting([5, 3, 3], STAGES)
     """Kernel sizes of the CNN stem's convolutions."""
-    cnn_strides: list[int] = setting([2, 2, 1])
+    cnn_strides: list[int] = setting([2, 2, 1], STAGES)
     """Strides of the CNN stem's convolutions."""
-    cnn_groups: list[int] = setting([4, 8, 8])
+    cnn_groups: list[int] = setting([4, 8, 8], STAGES)
     """GroupNorm groups after each convolution of the CNN stem."""
     heightmap_cells_per_token: int = setting(8, at_least(1))
     """Heightmap cells per pooled token along each side: a 32 x 32 map pools to 4 x 4 tokens,
     64 x 64 to 8 x 8 (rounded up to a multiple of the Swin windows and the patch merge)."""
-    swin_windows: list[int] = setting([2, 4])
+    swin_windows: list[int] = setting([2, 4], STAGES)
     """Window side of each windowed self-attention stage; a 2 x 2 patch merge follows the last."""
     tokenizer_base_tokens: int = setting(12, at_least(1))
     """Spatial-token budget when the heightmap yields exactly this many candidate tokens."""
@@ -87,13 +93,13 @@ class TerraShiftModelConfig:
     tokenizer_hidden_dim: int = setting(64, at_least(1))
     """Hidden width of the tokenizer's importance scorer."""
 
-    trunk_layers: int = setting(3, at_least(1))
+    trunk_layers: int = setting(3, interval(1, 64))
     """Layers of [parallel cross-attention, agent self-attention, feed-forward]."""
     ffn_dim: int = setting(384, at_least(1))
     """Hidden width of every feed-forward block (trunk and Swin stages)."""
     output_hidden_dim: int = setting(192, at_least(1))
     """Hidden width of the trunk's output MLP (d -> 192 -> d)."""
-    gru_layers: int = setting(2, at_least(1))
+    gru_layers: int = setting(2, interval(1, 16))
     """Stacked GRU layers of the agent memory (hidden size d)."""
 
     policy_hidden_dim: int = setting(192, at_least(1))
@@ -150,8 +156,6 @@ class TerraShiftModelConfig:
             raise ValueError(
                 f"model.agent_id_dim must be even (sine and cosine halves), got {self.agent_id_dim}"
             )
-        if not self.swin_windows:
-            raise ValueError("model.swin_windows must hold at least one stage, got []")
         budget = (self.tokenizer_min_tokens, self.tokenizer_base_tokens, self.tokenizer_max_tokens)
         if not budget[0] <= budget[1] <= budget[2]:
             raise ValueError(

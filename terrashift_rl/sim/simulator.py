@@ -75,10 +75,10 @@ class Simulator:
         self.config.validate()
         self.num_envs = num_envs
         self.torch_device = torch.device(device)
-        if self.torch_device.type == "cuda" and self.torch_device.index is None:
-            self.torch_device = torch.device("cuda", torch.cuda.current_device())
         if self.torch_device.type == "cuda" and not torch.cuda.is_available():
             raise ValueError(f"device {device!r} requested but CUDA is not available")
+        if self.torch_device.type == "cuda" and self.torch_device.index is None:
+            self.torch_device = torch.device("cuda", torch.cuda.current_device())
         self.device = wp.get_device(str(self.torch_device))
         if fuse_substeps is None:  # the faster of the two on each (docs/benchmarks.md)
             fuse_substeps = self.device.is_cpu

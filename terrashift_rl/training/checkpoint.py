@@ -33,9 +33,17 @@ from typing import TYPE_CHECKING, Any
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from terrashift_rl.fields import build, shown
+from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training.algorithms import ALGORITHMS
-from terrashift_rl.training.settings import TrainConfig, override
+from terrashift_rl.training.settings import (
+    TrainConfig,
+    check_loss_range,
+    check_network_size,
+    check_reward_range,
+    override,
+)
 
 if TYPE_CHECKING:
     from terrashift_rl.training.trainer import OnPolicyTrainer
@@ -62,6 +70,34 @@ CONVERT_COMMAND = (
 )
 """Rewrites a checkpoint of an earlier version (a pickled tensordict) that one trusts."""
 
+MAX_DEPTH = 32
+"""How deep a checkpoint's lists and dicts may nest (a data-parallel ``last.pt`` nests about
+eight deep)."""
+MAX_ENTRIES = 1_000_000
+"""How many entries a checkpoint's lists and dicts may hold together."""
+ENTRIES = {
+    "networks": (dict,),
+    "algorithm_networks": (dict,),
+    "algo": (str,),
+    "env_config": (dict,),
+    "model_config": (dict,),
+    "train_config": (dict,),
+    "iteration": (int,),
+    "env_steps": (int,),
+    "mean_reward_per_decision": (float,),
+    "optimizer": (dict,),
+    "value_normalizer": (dict, type(None)),
+    "torch_rng": (torch.Tensor,),
+    "cuda_rng": (list, type(None)),
+    "simulator": (dict,),
+    "carry": (TensorDictBase, type(None)),
+    "logger_run_id": (str, type(None)),
+    "best": (dict,),
+    "world_size": (int,),
+    "rank_states": (list,),
+}
+"""Every entry a training checkpoint may hold, with its kinds."""
+
 STALE_AFTER_S = 60.0
 """A temporary file untouched this long is left by a write that never finished: a write in
 progress keeps its file fresh."""
@@ -69,7 +105,9 @@ progress keeps its file fresh."""
 
 def save_checkpoint(state: dict[str, Any], path: str | Path) -> Path:
     """Writes ``state`` with ``torch.save`` to a temporary file beside ``path``, flushes it to
-    disk, then renames it over ``path`` (an atomic replace on POSIX file systems).
+    disk, then renames it over ``path`` (an atomic replace on POSIX file systems). A write that
+    fails (a full disk, a read-only folder) removes its temporary file, leaves ``path`` as it
+    was and raises ``OSError`` naming ``path`` and the reason.
 
     Example:
         >>> import tempfile
@@ -82,18 +120,26 @@ def save_checkpoint(state: dict[str, Any], path: str | Path) -> Path:
         (1, [0, 1, 2], torch.Size([3]))
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    temporary = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle, temporary = tempfile.mkstemp(
+            dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"
+        )
         with os.fdopen(handle, "wb") as file:
             torch.save({key: _plain(value) for key, value in state.items()}, file)
             file.flush()
             os.fsync(file.fileno())
         os.chmod(temporary, 0o644)  # mkstemp creates owner-only files
         os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+    except BaseException as error:
+        if temporary is not None:
+            Path(temporary).unlink(missing_ok=True)
+        if not isinstance(error, OSError):
+            raise
+        kept = "the previous one is kept" if path.exists() else "there is no earlier one"
+        reason = error.strerror or error
+        raise OSError(f"checkpoint {path} could not be written ({reason}); {kept}") from None
     return path
 
 
@@ -103,17 +149,27 @@ def load_checkpoint(
     required: Iterable[str] = (),
     map_location: str | torch.device = "cpu",
 ) -> dict:
-    """Loads a checkpoint written by :func:`save_checkpoint`.
+    """Loads a checkpoint written by :func:`save_checkpoint`, as data: nothing in it runs or is
+    parsed.
 
     Raises ``FileNotFoundError`` when ``path`` does not exist and ``ValueError`` naming it when it
-    is empty, truncated, corrupt, not a checkpoint, lacks one of the ``required`` entries, or
-    holds Python objects whose loading would run code (refused: nothing in the file runs).
+    is empty, truncated, corrupt, not a checkpoint, larger than this machine's memory, nested
+    deeper than :data:`MAX_DEPTH` or holding more than :data:`MAX_ENTRIES` entries, lacks one of
+    the ``required`` entries, or holds Python objects whose loading would run code (refused:
+    nothing in the file runs). A training checkpoint (one with ``networks``) is also checked
+    entry by entry (:func:`check_training_state`), its configs through the settings room.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}")
     try:
         with zipfile.ZipFile(path) as archive:
+            size, memory = sum(record.file_size for record in archive.infolist()), _memory_bytes()
+            if size > memory:
+                raise ValueError(
+                    f"checkpoint {path} unpacks to {size:,} bytes, more than this machine's "
+                    f"memory ({memory:,} bytes)"
+                )
             damaged = archive.testzip()  # reads every record against its CRC
     except zipfile.BadZipFile:
         raise ValueError(
@@ -128,10 +184,173 @@ def load_checkpoint(
         raise ValueError(_why_unreadable(path, error)) from None
     if not isinstance(state, dict):
         raise ValueError(f"{path} holds a {type(state).__name__}, not a checkpoint (a dict)")
+    _check_nesting(state, path)
     missing = [key for key in required if key not in state]
     if missing:
-        raise ValueError(f"checkpoint {path} lacks {missing}; it holds {list(state)}")
-    return upgrade({key: _rebuilt(value) for key, value in state.items()})
+        raise ValueError(f"checkpoint {path} lacks {missing}; it holds {list(state)[:20]}")
+    state = {key: _rebuilt(value, path, key) for key, value in state.items()}
+    if "networks" not in state:  # not a training checkpoint
+        return state
+    return check_training_state(state, path)
+
+
+def check_training_state(state: dict[str, Any], path: str | Path) -> dict[str, Any]:
+    """A training checkpoint's ``state`` (loaded from ``path``) in the current layout
+    (:func:`upgrade`), each entry checked before anything is built from it: every entry one of
+    :data:`ENTRIES` and of its kind; the configs through the settings room, as the command
+    line's are (types, ranges, known keys, the network's size, the reward's and the loss's
+    range), given back as the settings classes write them; the weights of ``networks`` with the
+    names and shapes of the network that ``model_config`` builds; every floating-point tensor of
+    the weights, the optimiser and the return statistics finite. Raises one ``ValueError``
+    naming ``path``, the entry and what it must be."""
+    for key, value in state.items():
+        kinds = ENTRIES.get(key)
+        if kinds is None:
+            raise _refused(
+                path,
+                shown(key),
+                f"is not an entry of a checkpoint; those are: {', '.join(ENTRIES)}",
+            )
+        if not isinstance(value, kinds):
+            expected = " or ".join(
+                "None" if kind is type(None) else kind.__name__ for kind in kinds
+            )
+            raise _refused(path, key, f"must be a {expected}, got a {type(value).__name__}")
+    for key in ("env_config", "model_config", "train_config"):
+        entries = state.get(key, {})
+        if any(not isinstance(name, str) for name in entries):
+            raise _refused(path, key, "must be a mapping of setting names to values")
+    train = state.get("train_config", {})
+    for entry, algo in (("algo", state.get("algo")), ("train_config['algo']", train.get("algo"))):
+        if algo is not None and not (isinstance(algo, str) and algo in ALGORITHMS):
+            raise _refused(
+                path, entry, f"must be one of {', '.join(ALGORITHMS)}, got {shown(algo)}"
+            )
+    best = state.get("best", {"reward": 0.0, "recent": []})
+    if not (
+        set(best) == {"reward", "recent"}
+        and isinstance(best["reward"], float)
+        and isinstance(best["recent"], list)
+        and all(isinstance(reward, float) for reward in best["recent"])
+    ):
+        raise _refused(path, "best", "must be {'reward': a number, 'recent': [numbers]}")
+    state = upgrade(state)
+    settings = {}
+    for key, check in _SETTINGS.items():
+        if key in state:
+            try:
+                settings[key] = check(state[key], state["algo"])
+            except ValueError as error:
+                raise _refused(path, key, str(error)) from None
+    if "train_config" in settings and "env_config" in settings:
+        try:
+            check_loss_range(settings["train_config"], settings["env_config"])
+        except ValueError as error:
+            raise _refused(path, "train_config", str(error)) from None
+    state.update({key: dataclasses.asdict(value) for key, value in settings.items()})
+    if "model_config" in settings:
+        _check_weights(state["networks"], settings["model_config"], path)
+    for key in ("algorithm_networks", "optimizer", "value_normalizer"):
+        _check_finite(state.get(key), path, key)
+    return state
+
+
+def _env_settings(values: dict, algo: str) -> TerraShiftConfig:
+    env = build(TerraShiftConfig, values, "env")
+    check_reward_range(env)
+    return env
+
+
+def _model_settings(values: dict, algo: str) -> TerraShiftModelConfig:
+    model = build(TerraShiftModelConfig, values, "model")
+    check_network_size(model)
+    return model
+
+
+def _train_settings(values: dict, algo: str) -> TrainConfig:
+    values = dict(values)
+    loss = values.pop("loss", {})
+    if not isinstance(loss, dict):
+        raise ValueError(f"train.loss must be a mapping of settings, got {shown(loss)}")
+    return TrainConfig.of(values, {**loss, "algo": algo})
+
+
+_SETTINGS = {
+    "env_config": _env_settings,
+    "model_config": _model_settings,
+    "train_config": _train_settings,
+}
+"""How each config a checkpoint holds passes the settings room (given the algorithm)."""
+
+
+def _check_weights(weights: dict, model: TerraShiftModelConfig, path: str | Path) -> None:
+    """``weights`` against the network ``model`` builds (on the meta device: nothing allocated)."""
+    with torch.device("meta"):
+        expected = make_terrashift_networks(model).state_dict()
+    for name, tensor in expected.items():
+        entry = f"networks[{name!r}]"
+        stored = weights.get(name)
+        if not isinstance(stored, torch.Tensor):
+            raise _refused(
+                path,
+                entry,
+                f"is missing: model_config's network has a {list(tensor.shape)} tensor there",
+            )
+        if stored.shape != tensor.shape:
+            raise _refused(
+                path,
+                entry,
+                f"has shape {list(stored.shape)} where model_config's network has "
+                f"{list(tensor.shape)}: the weights and model_config disagree",
+            )
+    extra = [name for name in weights if name not in expected]
+    if extra:
+        raise _refused(
+            path, f"networks[{shown(extra[0])}]", "is not a weight of model_config's network"
+        )
+    _check_finite(weights, path, "networks")
+
+
+def _check_finite(value: Any, path: str | Path, entry: str) -> None:
+    """Every floating-point tensor in ``value`` (nested in dicts and lists) is finite."""
+    if isinstance(value, torch.Tensor):
+        if value.is_floating_point() and not torch.isfinite(value).all():
+            raise _refused(path, entry, "holds NaN or infinite values")
+    elif isinstance(value, dict):
+        for key, entry_value in value.items():
+            _check_finite(entry_value, path, f"{entry}[{key!r}]")
+    elif isinstance(value, list):
+        for index, entry_value in enumerate(value):
+            _check_finite(entry_value, path, f"{entry}[{index}]")
+
+
+def _refused(path: str | Path, entry: str, what: str) -> ValueError:
+    return ValueError(f"checkpoint {path}, entry {entry}: {what}")
+
+
+def _memory_bytes() -> int:
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def _check_nesting(state: dict, path: Path) -> None:
+    """Refuses lists and dicts nested deeper than :data:`MAX_DEPTH` or holding more than
+    :data:`MAX_ENTRIES` entries, walking them without recursion."""
+    stack, entries = [(state, 1)], 0
+    while stack:
+        value, depth = stack.pop()
+        if depth > MAX_DEPTH:
+            raise ValueError(
+                f"checkpoint {path} nests lists or dicts more than {MAX_DEPTH} deep; a "
+                "checkpoint never does"
+            )
+        children = value.values() if isinstance(value, dict) else value
+        entries += len(children)
+        if entries > MAX_ENTRIES:
+            raise ValueError(
+                f"checkpoint {path} holds more than {MAX_ENTRIES:,} entries in lists and dicts; "
+                "a checkpoint never does"
+            )
+        stack.extend((child, depth + 1) for child in children if isinstance(child, dict | list))
 
 
 _RENAMED = {"value_clip_start": "clip_value_start", "value_clip_end": "clip_value_end"}
@@ -328,15 +547,33 @@ def _plain(value: Any) -> Any:
     }
 
 
-def _rebuilt(value: Any) -> Any:
+def _rebuilt(value: Any, path: Path, entry: str) -> Any:
     if isinstance(value, list):
-        return [_rebuilt(entry) for entry in value]
+        return [_rebuilt(item, path, f"{entry}[{index}]") for index, item in enumerate(value)]
     if not isinstance(value, dict):
         return value
     if _TENSORDICT not in value:
-        return {key: _rebuilt(entry) for key, entry in value.items()}
+        return {key: _rebuilt(item, path, f"{entry}[{key!r}]") for key, item in value.items()}
     stored = value[_TENSORDICT]
-    return TensorDict(
-        {key: _rebuilt(entry) for key, entry in stored["entries"].items()},
-        batch_size=stored["batch_size"],
-    )
+    if not (
+        isinstance(stored, dict)
+        and set(stored) == {"batch_size", "entries"}
+        and isinstance(stored["entries"], dict)
+        and isinstance(stored["batch_size"], list)
+        and all(type(size) is int and 0 <= size < 2**31 for size in stored["batch_size"])
+    ):
+        raise _refused(
+            path,
+            f"{entry}[{_TENSORDICT!r}]",
+            "must be a tensordict as save_checkpoint stores it: "
+            "{'batch_size': [sizes], 'entries': {name: tensor or tensordict}}",
+        )
+    entries = {
+        key: _rebuilt(item, path, f"{entry}[{key!r}]") for key, item in stored["entries"].items()
+    }
+    try:
+        return TensorDict(entries, batch_size=stored["batch_size"])
+    except (RuntimeError, ValueError, TypeError) as error:
+        raise _refused(
+            path, entry, f"is not a tensordict: {str(error).splitlines()[0][:200]}"
+        ) from None

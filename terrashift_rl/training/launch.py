@@ -1,9 +1,16 @@
 """How a recipe meets its command line and its machine: the device setting, the CPU-sized
-defaults of a run without CUDA and the command line of a ``torchrun`` rank other than 0."""
+defaults of a run without CUDA, the command line of a ``torchrun`` rank other than 0, the run
+folder's lock and writability, Warp's kernel cache, and refusals that end a run with their
+message alone."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import fcntl
+import os
+import tempfile
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -16,14 +23,22 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from terrashift_rl.fields import check_value
 from terrashift_rl.training import distributed
 from terrashift_rl.training.checkpoint import load_checkpoint
-from terrashift_rl.training.settings import OVERRIDES, hydra_override
+from terrashift_rl.training.settings import OVERRIDES
 
 __all__ = [
+    "LOCK_NAME",
+    "check_warp_cache",
+    "check_writable",
+    "claim_run_folder",
     "cpu_overrides",
     "hydra_overrides_of_other_ranks",
     "resolve_device",
+    "refusals_end_the_run",
     "size_for_the_machine",
 ]
+
+LOCK_NAME = "run.lock"
+"""The file in a run folder that holds the process id of the run writing there."""
 
 
 def resolve_device(name: Any, key: str) -> torch.device:
@@ -51,11 +66,13 @@ def _keys(overrides: Sequence[str]) -> list[str]:
     return [parsed.key_or_group for parsed in OverridesParser.create().parse_overrides(overrides)]
 
 
-def cpu_overrides(defaults: Sequence[str], given: Sequence[str]) -> list[str]:
-    """The overrides of ``defaults`` that the command line's overrides ``given`` leave alone: a
-    default is dropped when a given override sets its key, a key inside it (``model.embed_dim``
-    for ``model=small``) or the config group it lies in (``train=throughput`` for
-    ``train.num_envs=32``).
+def cpu_overrides(
+    defaults: Sequence[str], given: Sequence[str], *, taken: Sequence[str] = ()
+) -> list[str]:
+    """The overrides of ``defaults`` that the command line's overrides ``given`` and the keys or
+    groups ``taken`` (set another way) leave alone: a default is dropped when a given override
+    sets its key, a key inside it (``model.embed_dim`` for ``model=small``) or the config group
+    it lies in (``train=throughput`` for ``train.num_envs=32``).
 
     Example:
         >>> defaults = ["model=small", "train.num_envs=32", "run.eval_episodes=16"]
@@ -63,17 +80,20 @@ def cpu_overrides(defaults: Sequence[str], given: Sequence[str]) -> list[str]:
         ['model=small', 'train.num_envs=32', 'run.eval_episodes=16']
         >>> cpu_overrides(defaults, ["model.embed_dim=64", "train=throughput"])
         ['run.eval_episodes=16']
+        >>> cpu_overrides(defaults, [], taken=["model"])
+        ['train.num_envs=32', 'run.eval_episodes=16']
     """
-    given_keys = _keys(given)
-
-    def overlaps(key: str, other: str) -> bool:
-        return key == other or key.startswith(f"{other}.") or other.startswith(f"{key}.")
-
+    given_keys = [*_keys(given), *taken]
     return [
         default
         for default, key in zip(defaults, _keys(defaults), strict=True)
-        if not any(overlaps(key, other) for other in given_keys)
+        if not any(_overlaps(key, other) for other in given_keys)
     ]
+
+
+def _overlaps(key: str, other: str) -> bool:
+    """Whether setting ``key`` and ``other`` change a common setting (one holds the other)."""
+    return key == other or key.startswith(f"{other}.") or other.startswith(f"{key}.")
 
 
 def size_for_the_machine(
@@ -98,22 +118,25 @@ def size_for_the_machine(
     check_value(defaults_key, defaults, list[str], OVERRIDES)
     hydra_config = HydraConfig.get()
     given = list(hydra_config.overrides.task)
-    pinned, changed = [], []
-    if source is not None:
+    model, changed = {}, []
+    if source is not None:  # checked through the settings room; data, never parsed
         saved = load_checkpoint(OmegaConf.select(cfg, source), required=("model_config",))
-        model = {key: value for key, value in saved["model_config"].items() if key in cfg.model}
-        texts = {hydra_override(f"model.{key}", value): key for key, value in model.items()}
-        pinned = cpu_overrides(list(texts), given)
-        changed = [texts[text] for text in pinned if cfg.model[texts[text]] != model[texts[text]]]
+        given_keys = _keys(given)
+        model = {
+            key: value
+            for key, value in saved["model_config"].items()
+            if not any(_overlaps(f"model.{key}", other) for other in given_keys)
+        }
+        changed = [key for key, value in model.items() if cfg.model[key] != value]
     sized = []
     if sizing:
         try:
-            sized = cpu_overrides(defaults, [*pinned, *given])
+            sized = cpu_overrides(defaults, given, taken=["model"] if model else [])
         except OverrideParseException as error:
             raise ValueError(
                 f"{defaults_key}={defaults} holds an override Hydra cannot read: {error}"
             ) from None
-        note = f" with the model of {source}" if pinned else ""
+        note = f" with the model of {source}" if model else ""
         if distributed.is_main_process():
             print(
                 f"no CUDA device: a CPU-sized run ({' '.join(sized)}){note}; set {device_key}=cpu "
@@ -123,9 +146,11 @@ def size_for_the_machine(
             )
     elif changed and distributed.is_main_process():
         print(f"the model of {source}: it differs from the configured one in {', '.join(changed)}")
-    if not sized and not changed:
-        return cfg
-    return compose(config_name=hydra_config.job.config_name, overrides=[*sized, *pinned, *given])
+    if sized:
+        cfg = compose(config_name=hydra_config.job.config_name, overrides=[*sized, *given])
+    for key, value in model.items():  # the room allows no interpolation in a model setting
+        cfg.model[key] = value
+    return cfg
 
 
 def hydra_overrides_of_other_ranks() -> list[str]:
@@ -141,3 +166,86 @@ def hydra_overrides_of_other_ranks() -> list[str]:
         "hydra/job_logging=disabled",
         "hydra/hydra_logging=disabled",
     ]
+
+
+@contextmanager
+def claim_run_folder(run_dir: str | Path) -> Iterator[None]:
+    """Holds ``run_dir`` for this run while the block runs: checks that it and its
+    ``checkpoints`` folder are writable (:func:`check_writable`), then takes an exclusive lock
+    (``flock``) on ``run_dir/run.lock`` and writes this process's id into it; the file goes at
+    the end. A folder whose lock another live run holds is refused naming that run's process.
+    The system drops a lock with its process, so a run that was killed (``kill -9`` included)
+    leaves a file that the next run takes over. In a data-parallel run only rank 0 writes, so
+    only rank 0 claims the folder."""
+    if not distributed.is_main_process():
+        yield
+        return
+    run_dir = Path(run_dir)
+    check_writable(run_dir, "the run folder")
+    check_writable(run_dir / "checkpoints", "the checkpoints folder")
+    lock = run_dir / LOCK_NAME
+    while True:
+        handle = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(handle, 32).decode(errors="replace").strip() or "unknown"
+            os.close(handle)
+            raise ValueError(
+                f"the run folder {run_dir} is in use by the run of process {holder} (it holds "
+                f"{LOCK_NAME}); wait for it to end or write elsewhere (hydra.run.dir=<folder>)"
+            ) from None
+        if lock.exists() and os.stat(lock).st_ino == os.fstat(handle).st_ino:
+            break
+        os.close(handle)  # the file was removed by the run that held it: lock its successor
+    try:
+        os.ftruncate(handle, 0)
+        os.write(handle, str(os.getpid()).encode())
+        yield
+    finally:
+        lock.unlink(missing_ok=True)  # while still locked, so no run locks a removed file
+        os.close(handle)
+
+
+def check_writable(folder: str | Path, role: str) -> None:
+    """Creates ``folder`` if needed and writes and removes a file in it; raises ``ValueError``
+    naming it by its ``role`` and the system's reason when either fails.
+
+    Example:
+        >>> check_writable("/proc/no", "the run folder")
+        Traceback (most recent call last):
+        ...
+        ValueError: the run folder /proc/no cannot be written (No such file or directory)
+    """
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".writable."):
+            pass
+    except OSError as error:
+        raise ValueError(f"{role} {folder} cannot be written ({error.strerror or error})") from None
+
+
+def check_warp_cache() -> None:
+    """Raises ``ValueError`` naming ``WARP_CACHE_PATH`` when it is set to a folder where Warp
+    cannot keep its compiled kernels."""
+    path = os.environ.get("WARP_CACHE_PATH")
+    if path is not None:
+        try:
+            check_writable(path, "WARP_CACHE_PATH, Warp's kernel cache, at")
+        except ValueError as error:
+            raise ValueError(f"{error}; set it to a writable folder or unset it") from None
+
+
+@contextmanager
+def refusals_end_the_run() -> Iterator[None]:
+    """Ends the process with exit status 1 and the message alone, without a traceback, when the
+    block refuses what it was given (a ``ValueError``: a setting, a checkpoint, a run folder)
+    or cannot write or read a file (an ``OSError``, which names it). ``HYDRA_FULL_ERROR=1``
+    keeps the traceback, as Hydra's own errors do."""
+    try:
+        yield
+    except (ValueError, OSError) as error:
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        raise SystemExit(f"error: {error}") from None

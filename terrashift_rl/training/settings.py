@@ -20,7 +20,9 @@ group      settings
 evaluation recipe's; :meth:`RecipeConfig.of` and :meth:`EvaluateConfig.of` build them from the
 composed Hydra config through :func:`~terrashift_rl.fields.build`, which refuses a key that its
 group lacks (also one added with ``+``), a value of the wrong type (an integer for a boolean) or
-outside its range, naming the key, the value and what is allowed. :func:`register_config_schemas`
+outside its range, naming the key, the value and what is allowed; then what the settings make
+together: the networks' size (:func:`check_network_size`) and the reward's and the loss's range in
+float32 (:func:`check_reward_range`, :func:`check_loss_range`). :func:`register_config_schemas`
 gives Hydra every group's defaults, so each field can be set as ``group.field=value``;
 :func:`override` writes a setting back as the command line sets it.
 """
@@ -29,11 +31,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import re
 import shlex
 from dataclasses import dataclass, field
 from typing import Any
 
+import torch
 from hydra.core.config_store import ConfigStore
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.errors import OverrideParseException
@@ -48,7 +52,7 @@ from terrashift_rl.fields import (
     one_of,
     setting,
 )
-from terrashift_rl.modules import TerraShiftModelConfig
+from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training.algorithms import ALGORITHMS, LossConfig, MAPOCAConfig
 
@@ -59,6 +63,9 @@ __all__ = [
     "RunConfig",
     "TrainConfig",
     "VideoConfig",
+    "check_loss_range",
+    "check_network_size",
+    "check_reward_range",
     "hydra_override",
     "loss_config",
     "override",
@@ -66,8 +73,8 @@ __all__ = [
 ]
 
 NAME = Allowed(
-    lambda value: 0 < len(value) <= 100 and "/" not in value and value not in (".", ".."),
-    "a name of 1 to 100 characters without /",
+    lambda value: re.fullmatch(r"[\w+=-][\w.+=-]{0,99}", value, re.ASCII) is not None,
+    "a name of 1 to 100 letters, digits, _ - + = or . (not first), never a path",
 )
 PATH = Allowed(lambda value: value != "", "a non-empty path")
 DEVICE = Allowed(
@@ -78,6 +85,13 @@ OVERRIDES = Allowed(
     lambda value: all("=" in item for item in value), "a list of overrides (key=value)"
 )
 SEED = Allowed(lambda value: 0 <= value < 2**64, "in [0, 2**64)")
+
+MAX_NETWORK_PARAMETERS = 100_000_000
+"""The most parameters a model's networks may hold (the paper's hold 1.9 million): 400 MB of
+float32 weights, and four times that with gradients and AdamW's moments. Larger sizes are
+refused before anything is allocated."""
+FLOAT32_MAX = float(torch.finfo(torch.float32).max)
+"""The largest finite float32, the rewards' and the losses' dtype."""
 
 
 @dataclass
@@ -165,6 +179,12 @@ class TrainConfig:
     def __post_init__(self) -> None:
         self.validate()
 
+    @classmethod
+    def of(cls, values: dict[str, Any], loss: dict[str, Any]) -> TrainConfig:
+        """The ``train`` settings ``values`` with the ``loss`` settings of the algorithm that
+        ``loss["algo"]`` names (:func:`loss_config`), every one checked."""
+        return build(cls, {**values, "loss": loss_config(loss)}, "train")
+
     @property
     def algo(self) -> str:
         """The algorithm, a key of :data:`~terrashift_rl.training.algorithms.ALGORITHMS`."""
@@ -219,7 +239,8 @@ class RunConfig:
     """What a training run does around the loop (the ``run`` settings)."""
 
     name: str = setting("mapoca_pretrain", NAME)
-    """The run's name: the progress bar's label and the logger's run name."""
+    """The run's name: the progress bar's label and the logger's run name (a csv or
+    tensorboard logger's folder under ``<run>/logs``, so a name, never a path)."""
     seed: int = setting(0, SEED)
     """Seed of the networks' initialisation and the training environments (rank r of a
     data-parallel run: seed + r)."""
@@ -268,7 +289,7 @@ class LoggerConfig:
     """``wandb``, ``csv`` or ``tensorboard`` files under the run's folder, or ``none``."""
     mode: str = setting("offline", one_of("offline", "online"))
     """With ``kind=wandb``: ``offline`` (no account, no network) or ``online`` (syncs)."""
-    project: str = setting("terrashift_rl")
+    project: str = setting("terrashift_rl", NAME)
     """With ``kind=wandb``: the project's name."""
 
 
@@ -299,9 +320,14 @@ class RecipeConfig:
             raise ValueError(
                 f"{unknown[0]} is not a setting; the config groups are: {', '.join(groups)}"
             )
-        loss = loss_config(values.pop("loss", {"algo": "mapoca"}))
-        values["train"] = build(TrainConfig, {**values.get("train", {}), "loss": loss}, "train")
+        loss = values.pop("loss", {"algo": "mapoca"})
+        values["train"] = TrainConfig.of(values.get("train", {}), loss)
         return build(cls, values, "")
+
+    def __post_init__(self) -> None:
+        check_network_size(self.model)
+        check_reward_range(self.env)
+        check_loss_range(self.train, self.env)
 
 
 @dataclass
@@ -348,10 +374,104 @@ class EvaluateConfig:
     wandb: bool = setting(False)
     """Also log the metrics and the video to an offline wandb run."""
 
+    def __post_init__(self) -> None:
+        check_reward_range(self.env)
+
     @classmethod
     def of(cls, cfg: DictConfig) -> EvaluateConfig:
         """The settings the composed config ``cfg`` holds, every one checked."""
         return build(cls, _values(cfg), "")
+
+
+# --- what the settings make together ------------------------------------------------------------
+def check_network_size(model: TerraShiftModelConfig, key: str = "model") -> None:
+    """Raises ``ValueError`` naming the settings ``key`` when the networks of ``model`` would
+    hold more than :data:`MAX_NETWORK_PARAMETERS` parameters; they are counted on PyTorch's
+    meta device, which allocates nothing."""
+    try:
+        with torch.device("meta"):
+            count = sum(p.numel() for p in make_terrashift_networks(model).parameters())
+    except (RuntimeError, OverflowError, MemoryError) as error:  # sizes past PyTorch's indices
+        raise ValueError(f"{key}: the networks of these sizes cannot be built ({error})") from None
+    if count > MAX_NETWORK_PARAMETERS:
+        raise ValueError(
+            f"{key}: the networks would hold {count:.3g} parameters, more than the "
+            f"{MAX_NETWORK_PARAMETERS:,} that fit a GPU's memory with their gradients and "
+            f"optimiser state; lower {key}.embed_dim ({model.embed_dim}), {key}.ffn_dim "
+            f"({model.ffn_dim}) or {key}.trunk_layers ({model.trunk_layers})"
+        )
+
+
+def reward_bound(env: TerraShiftConfig) -> dict[str, float]:
+    """An upper bound of a decision's reward magnitude, as the sum of each reward setting's
+    share (the terms of :data:`~terrashift_rl.sim.config.REWARD_TERMS`, every one at its
+    largest on every tick of the decision, divided by ``reward_normalizer``).
+
+    Example:
+        >>> share = reward_bound(TerraShiftConfig())
+        >>> max(share, key=share.get), f"{sum(share.values()):.0f}"
+        ('distance_scale', '225')
+    """
+    reach = 2.0 * math.sqrt(2.0) * env.out_of_bounds_xy + env.out_of_bounds_z  # any distance
+    per_sphere = {
+        "goal_reward": abs(env.goal_reward),
+        "out_of_bounds_penalty": abs(env.out_of_bounds_penalty),
+        "distance_scale": env.distance_scale * env.distance_clip,
+        "potential_scale": abs(env.potential_scale) * reach * (1.0 + env.potential_gamma),
+        "slow_penalty": abs(env.slow_penalty),
+        "alignment_scale": abs(env.alignment_scale),
+        "sphere_approach_scale": abs(env.sphere_approach_scale) * reach,
+    }
+    share = {name: env.num_objects * value for name, value in per_sphere.items()}
+    share["approach_scale"] = env.num_agents * abs(env.approach_scale) * reach
+    share["time_penalty"] = abs(env.time_penalty)
+    ticks = env.action_repeat / env.reward_normalizer
+    return {name: value * ticks for name, value in share.items()}
+
+
+def check_reward_range(env: TerraShiftConfig, key: str = "env") -> None:
+    """Raises ``ValueError`` naming the settings of ``key`` that can make a decision's reward
+    infinite in float32 (:func:`reward_bound` beyond :data:`FLOAT32_MAX`), or that float32 holds
+    as infinity or zero.
+
+    Example:
+        >>> check_reward_range(TerraShiftConfig(reward_normalizer=1e-300))  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        ValueError: env.reward_normalizer (1e-300) is 0 in float32, the reward's dtype; ...
+    """
+    if env.reward_normalizer < torch.finfo(torch.float32).tiny:
+        raise ValueError(
+            f"{key}.reward_normalizer ({env.reward_normalizer:g}) is 0 in float32, the reward's "
+            "dtype; every reward would be infinite: use a normalizer >= 1e-30"
+        )
+    share = reward_bound(env)
+    largest = max(share, key=share.get)
+    if sum(share.values()) > FLOAT32_MAX:
+        raise ValueError(
+            f"{key}.{largest} ({getattr(env, largest):g}) with {key}.reward_normalizer "
+            f"({env.reward_normalizer:g}) makes a decision's reward reach "
+            f"{sum(share.values()):.3g}, beyond float32's largest number ({FLOAT32_MAX:.3g}): "
+            f"the reward would be infinite; lower {key}.{largest} or raise the normalizer"
+        )
+
+
+def check_loss_range(train: TrainConfig, env: TerraShiftConfig) -> None:
+    """Raises ``ValueError`` naming the loss coefficient (``loss.*_coeff*``) that can make the
+    loss infinite in float32: times the largest squared return (a decision's
+    :func:`reward_bound` over ``1 / (1 - gamma)`` decisions, or an episode's with
+    ``gamma = 1``), beyond :data:`FLOAT32_MAX`."""
+    loss = train.loss
+    horizon = env.max_episode_steps if loss.gamma == 1 else 1 / (1 - loss.gamma)
+    squared_return = (sum(reward_bound(env).values()) * horizon) ** 2
+    for name in (entry.name for entry in dataclasses.fields(loss) if "_coeff" in entry.name):
+        value = getattr(loss, name)
+        if value * squared_return > FLOAT32_MAX:
+            raise ValueError(
+                f"loss.{name} ({value:g}) times the largest squared return "
+                f"({squared_return:.3g}) goes beyond float32's largest number "
+                f"({FLOAT32_MAX:.3g}): the loss would be infinite; lower loss.{name}"
+            )
 
 
 def _values(cfg: DictConfig) -> dict[str, Any]:

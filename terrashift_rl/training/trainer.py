@@ -53,6 +53,13 @@ state."""
 _SUMMED_METRICS = ("env_steps_per_s", "collection_steps_per_s")
 """The trainer's metrics of a data-parallel iteration that add up over the processes (the
 others average)."""
+_TERM_SETTINGS = {
+    "loss_critic": "value_coeff",
+    "loss_baseline": "baseline_coeff",
+    "loss_entropy": "entropy_coeff_start",
+    "loss_teacher": "teacher_coeff",
+}
+"""The loss setting that weighs each loss term: a suspect when the loss turns non-finite."""
 
 
 class TrainerHook:
@@ -312,17 +319,31 @@ class OnPolicyTrainer:
         on the host already; the parameters cost one host synchronisation per iteration."""
         for name, value in metrics.items():
             if (name.startswith("loss_") or name == "grad_norm") and not math.isfinite(value):
-                raise self._non_finite(f"{name} = {value}")
+                raise self._non_finite(f"{name} = {value}", term=name)
         parameters = dict(self._named_parameters())
         finite = torch.stack([parameter.isfinite().all() for parameter in parameters.values()])
         if not finite.all():
             first = list(parameters)[int(finite.logical_not().nonzero()[0])]
             raise self._non_finite(f"parameter {first} holds non-finite values")
 
-    def _non_finite(self, what: str) -> FloatingPointError:
+    def _non_finite(self, what: str, term: str = "") -> FloatingPointError:
+        """The error for ``what`` turning non-finite, naming the settings most likely
+        responsible first: the loss coefficients raised above their defaults (only the loss
+        ``term``'s own where it is one of them), else the learning rates."""
+        loss, defaults = self.config.loss, type(self.config.loss)()
+        raised = [
+            name
+            for name in _TERM_SETTINGS.values()
+            if hasattr(loss, name) and getattr(loss, name) > getattr(defaults, name)
+        ]
+        if _TERM_SETTINGS.get(term) in raised:
+            raised = [_TERM_SETTINGS[term]]
+        suspects = "the learning rates (train.lr_trunk_policy, train.lr_value_baseline)"
+        if raised:
+            weights = ", ".join(f"loss.{name} ({getattr(loss, name):g})" for name in raised)
+            suspects = f"{weights}, raised above the default, or else {suspects}"
         return FloatingPointError(
-            f"iteration {self.iteration + 1} made {what}; lower the learning rates "
-            "(train.lr_trunk_policy, train.lr_value_baseline) first"
+            f"iteration {self.iteration + 1} made {what}; lower {suspects} first"
         )
 
     # --- checkpoints -----------------------------------------------------------------------

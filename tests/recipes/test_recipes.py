@@ -644,7 +644,7 @@ def test_the_smoke_config_takes_every_train_setting():
         ("run.minutes=-1", r"run.minutes must be a finite number > 0 or null \(no time limit\)"),
         ("run.minutes=nan", "run.minutes must be a finite number > 0 .*, got nan"),
         ("run.eval_every=0", "run.eval_every must be an integer >= 1 or null"),
-        ("run.name=''", "run.name must be a name of 1 to 100 characters without /, got ''"),
+        ("run.name=''", "run.name must be a name of 1 to 100 letters, digits"),
         ("run.device=tpu", "run.device must be auto, cpu, cuda or cuda:<index>, got 'tpu'"),
         ("run.cpu_defaults=small", r"run.cpu_defaults must be a list of .*, got .small.$"),
         ("logger=wandb logger.mode=loud", "logger.mode must be one of offline, online, got 'loud'"),
