@@ -1,0 +1,245 @@
+"""An automatic curriculum over the scene's size: grid, agents and spheres, small to large.
+
+Larger grids, more agents and more spheres each make learning from scratch brittle (TerraShift
+paper, Section 5.2.2), while a policy that learnt a small scene transfers to a larger one. A
+:class:`Curriculum` trains on a sequence of scenes from a start scene (the pretraining scene,
+15 x 15 columns, 8 agents, 4 spheres, by default) to the run's target scene:
+
+- **Stages**: ``stages`` scenes, the start and the target included. Each of grid size, agents
+  and spheres is interpolated linearly between the start's and the target's and rounded half
+  up; goals are the target's, at most one per sphere; every other field is the target's.
+  Consecutive stages that come out equal are merged. A stage the simulator cannot hold (more
+  spheres and goals than its spawn places) is refused at start-up, naming the settings.
+- **Advance**: when an in-training evaluation (evaluation mode, on the current stage's scene)
+  reaches a goal fraction of ``threshold``, the next stage starts; the last stage is kept.
+- **Mix**: from the second stage on, a fraction ``mix`` of the training environments stays on
+  the earlier stages, spread evenly over them (the earliest first where they do not divide),
+  so that what was learnt there is kept. One simulator holds one grid size, so each stage in
+  the mix has its own batch of environments; :class:`~terrashift_rl.envs.mixed.MixedSceneEnv`
+  steps them as one batch padded to the current stage's agents and spheres, which the
+  networks (attention over agents and objects) and MA-POCA's loss (absent agents masked out)
+  take as they are.
+
+:meth:`Curriculum.state_dict` holds the stage and the env-steps of each advance, so a resumed
+run continues at the same stage.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from terrashift_rl.sim import TerraShiftConfig
+
+__all__ = ["CURRICULUM_KINDS", "Curriculum", "CurriculumSettings", "stage_scenes"]
+
+CURRICULUM_KINDS = ("none", "auto")
+"""Values of :attr:`CurriculumSettings.kind`."""
+
+_SIZES = ("grid_size", "num_agents", "num_objects")
+"""The scene fields a curriculum grows."""
+
+
+@dataclass
+class CurriculumSettings:
+    """The ``curriculum`` config group: whether and how the scene grows during training."""
+
+    kind: str = "none"
+    """``none``: train on the ``env`` group's scene from the start; ``auto``: stages from the
+    start scene below to the ``env`` group's scene."""
+    stages: int = 3
+    """Scenes from the start to the target, both included, >= 2 (3 from the pretraining scene
+    to ``env=large``: 15 x 15 / 8 agents / 4 spheres, 30 x 30 / 16 / 6, 45 x 45 / 24 / 8)."""
+    start_grid_size: int = 15
+    """Columns per side of the first stage's grid, >= 2."""
+    start_num_agents: int = 8
+    """Wave agents of the first stage, >= 1."""
+    start_num_objects: int = 4
+    """Spheres of the first stage, >= 1."""
+    threshold: float = 0.8
+    """Goal fraction of an in-training evaluation at the current stage at which the next
+    stage starts, in (0, 1]."""
+    mix: float = 0.25
+    """Fraction of the training environments kept on earlier stages once there are any, in
+    [0, 1). Above 0 with a stage of fewer agents than the current one, the environments are
+    padded with absent agents, which only ``train.algo=mapoca``'s loss leaves out."""
+
+    def validate(self) -> None:
+        """Raises ``ValueError`` naming the first setting outside its range."""
+        if self.kind not in CURRICULUM_KINDS:
+            raise ValueError(
+                f"curriculum.kind must be one of {CURRICULUM_KINDS}, got {self.kind!r}"
+            )
+        for name, minimum in (
+            ("stages", 2),
+            ("start_grid_size", 2),
+            ("start_num_agents", 1),
+            ("start_num_objects", 1),
+        ):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+                raise ValueError(
+                    f"curriculum.{name} must be an integer >= {minimum}, got {value!r}"
+                )
+        for name, allowed, test in (
+            ("threshold", "in (0, 1]", lambda value: 0.0 < value <= 1.0),
+            ("mix", "in [0, 1)", lambda value: 0.0 <= value < 1.0),
+        ):
+            value = getattr(self, name)
+            number = isinstance(value, int | float) and not isinstance(value, bool)
+            if not (number and math.isfinite(value) and test(value)):
+                raise ValueError(f"curriculum.{name} must be a number {allowed}, got {value!r}")
+
+
+def _sizes(scene: TerraShiftConfig) -> tuple[int, int, int]:
+    return tuple(getattr(scene, name) for name in _SIZES)
+
+
+def stage_scenes(target: TerraShiftConfig, settings: CurriculumSettings) -> list[TerraShiftConfig]:
+    """The curriculum's scenes from the start to ``target`` (the module's rule).
+
+    Raises:
+        ValueError: naming the setting, if the target is smaller than the start in grid size,
+            agents or spheres, equals the start, or a stage is a scene the simulator cannot
+            hold.
+
+    Example:
+        >>> scenes = stage_scenes(TerraShiftConfig.preset("large"), CurriculumSettings(stages=3))
+        >>> [(s.grid_size, s.num_agents, s.num_objects, s.num_goals) for s in scenes]
+        [(15, 8, 4, 4), (30, 16, 6, 6), (45, 24, 8, 8)]
+    """
+    settings.validate()
+    start = tuple(getattr(settings, f"start_{name}") for name in _SIZES)
+    end = _sizes(target)
+    for name, first, last in zip(_SIZES, start, end, strict=True):
+        if last < first:
+            raise ValueError(
+                f"env.{name} ({last}) is smaller than curriculum.start_{name} ({first}): a "
+                f"curriculum only grows the scene; lower curriculum.start_{name} or use "
+                "curriculum=none"
+            )
+    if start == end:
+        raise ValueError(
+            f"curriculum.start_grid_size, start_num_agents and start_num_objects {start} equal "
+            "the env group's grid_size, num_agents and num_objects: there is nothing to grow; "
+            "use curriculum=none"
+        )
+    scenes: list[TerraShiftConfig] = []
+    for stage in range(settings.stages):
+        t = stage / (settings.stages - 1)
+        grid, agents, objects = (
+            math.floor(first + t * (last - first) + 0.5)
+            for first, last in zip(start, end, strict=True)
+        )
+        try:
+            scene = target.replace(
+                grid_size=grid,
+                num_agents=agents,
+                num_objects=objects,
+                num_goals=min(target.num_goals, objects),
+            )
+        except ValueError as error:
+            raise ValueError(
+                f"curriculum stage {stage + 1} of {settings.stages} ({grid}x{grid} columns, "
+                f"{agents} agents, {objects} spheres) is no scene the simulator holds: {error}; "
+                "change curriculum.start_grid_size, curriculum.start_num_objects or "
+                "curriculum.stages"
+            ) from None
+        if not scenes or _sizes(scene) != _sizes(scenes[-1]):
+            scenes.append(scene)
+    return scenes
+
+
+class Curriculum:
+    """Which stage a run is at, when it advances, and how its environments are shared out.
+
+    Args:
+        target: the run's scene (the ``env`` group's), the last stage.
+        settings: the ``curriculum`` group's settings; ``kind`` is not read.
+
+    Example:
+        >>> curriculum = Curriculum(TerraShiftConfig.preset("finetune"), CurriculumSettings())
+        >>> curriculum.describe()
+        'stage 1/3: 15x15 columns, 8 agents, 4 spheres'
+        >>> curriculum.observe(0.85, env_steps=1000), curriculum.describe()
+        (True, 'stage 2/3: 23x23 columns, 12 agents, 4 spheres')
+        >>> curriculum.allocation(num_envs=16)
+        [(0, 4), (1, 12)]
+    """
+
+    def __init__(self, target: TerraShiftConfig, settings: CurriculumSettings) -> None:
+        self.settings = settings
+        self.scenes = stage_scenes(target, settings)
+        self.stage = 0
+        self.advances: list[int] = []
+        """Env-steps at which each stage after the first started."""
+
+    @property
+    def scene(self) -> TerraShiftConfig:
+        """The current stage's scene."""
+        return self.scenes[self.stage]
+
+    @property
+    def final(self) -> bool:
+        """Whether the current stage is the target."""
+        return self.stage == len(self.scenes) - 1
+
+    def describe(self, stage: int | None = None) -> str:
+        """``stage N/S: GxG columns, K agents, M spheres`` of ``stage`` (the current one if
+        None)."""
+        stage = self.stage if stage is None else stage
+        grid, agents, objects = _sizes(self.scenes[stage])
+        return (
+            f"stage {stage + 1}/{len(self.scenes)}: {grid}x{grid} columns, {agents} agents, "
+            f"{objects} spheres"
+        )
+
+    def observe(self, goal_fraction: float, *, env_steps: int) -> bool:
+        """Takes an in-training evaluation's goal fraction at the current stage; advances to the
+        next stage if it reaches the threshold. Returns whether it advanced."""
+        if self.final or goal_fraction < self.settings.threshold:
+            return False
+        self.stage += 1
+        self.advances.append(env_steps)
+        return True
+
+    def allocation(self, num_envs: int, stage: int | None = None) -> list[tuple[int, int]]:
+        """``(stage, environments)`` of every stage in the mix at ``stage`` (the current one if
+        None), earliest first, the current stage last; a stage that the mix leaves no
+        environment is left out.
+
+        Raises:
+            ValueError: if the mix leaves the current stage no environment.
+        """
+        stage = self.stage if stage is None else stage
+        earlier = round(self.settings.mix * num_envs) if stage else 0
+        if num_envs - earlier < 1:
+            raise ValueError(
+                f"train.num_envs={num_envs} with curriculum.mix={self.settings.mix} leaves no "
+                "environment on the current stage; raise train.num_envs or lower curriculum.mix"
+            )
+        share, remainder = divmod(earlier, max(stage, 1))
+        counts = [(i, share + (i < remainder)) for i in range(stage)]
+        return [(i, n) for i, n in counts if n] + [(stage, num_envs - earlier)]
+
+    def state_dict(self) -> dict[str, Any]:
+        """The stage, the env-steps of each advance and the stages' sizes."""
+        return {
+            "stage": self.stage,
+            "advances": list(self.advances),
+            "scenes": [list(_sizes(scene)) for scene in self.scenes],
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Continues at the stage of ``state``; raises ``ValueError`` if its stages differ
+        from this curriculum's."""
+        mine = [list(_sizes(scene)) for scene in self.scenes]
+        if state["scenes"] != mine:
+            raise ValueError(
+                f"the checkpoint's curriculum has the stages (grid_size, num_agents, "
+                f"num_objects) {state['scenes']}, these settings give {mine}; resume with the "
+                "curriculum and env settings it was trained with"
+            )
+        self.stage = state["stage"]
+        self.advances = list(state["advances"])

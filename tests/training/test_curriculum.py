@@ -1,0 +1,165 @@
+"""The curriculum's stages, advance, mix of stages, exact resume and refusals; the mixed env."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from terrashift_rl.envs.mixed import MixedSceneEnv
+from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.training.curriculum import Curriculum, CurriculumSettings, stage_scenes
+
+
+def sizes(scenes):
+    return [(s.grid_size, s.num_agents, s.num_objects, s.num_goals) for s in scenes]
+
+
+# --- stages --------------------------------------------------------------------------------
+
+
+def test_stages_interpolate_each_size_from_the_start_to_the_target():
+    large = TerraShiftConfig.preset("large", approach_scale=0.3)
+    scenes = stage_scenes(large, CurriculumSettings(stages=5))
+    assert sizes(scenes) == [
+        (15, 8, 4, 4),
+        (23, 12, 5, 5),  # 22.5 -> 23, rounded half up
+        (30, 16, 6, 6),
+        (38, 20, 7, 7),
+        (45, 24, 8, 8),
+    ]
+    # every other field is the target's
+    assert {(s.approach_scale, s.time_penalty) for s in scenes} == {(0.3, 0.0)}
+
+
+def test_equal_consecutive_stages_are_merged_and_goals_follow_the_target():
+    target = TerraShiftConfig(grid_size=17, num_agents=8, num_objects=4, num_goals=2)
+    scenes = stage_scenes(target, CurriculumSettings(stages=4))
+    assert sizes(scenes) == [(15, 8, 4, 2), (16, 8, 4, 2), (17, 8, 4, 2)]
+
+
+# --- advance -------------------------------------------------------------------------------
+
+
+def test_a_stage_advances_when_an_evaluation_reaches_the_threshold_and_not_before():
+    curriculum = Curriculum(TerraShiftConfig.preset("large"), CurriculumSettings(threshold=0.7))
+    assert not curriculum.observe(0.69, env_steps=100)
+    assert curriculum.stage == 0
+    assert curriculum.observe(0.7, env_steps=200)
+    assert curriculum.scene.grid_size == 30
+    assert curriculum.observe(0.95, env_steps=300)
+    assert curriculum.final and curriculum.scene == TerraShiftConfig.preset("large")
+    assert not curriculum.observe(1.0, env_steps=400)  # the target is kept
+    assert (curriculum.stage, curriculum.advances) == (2, [200, 300])
+    assert curriculum.describe() == "stage 3/3: 45x45 columns, 24 agents, 8 spheres"
+
+
+# --- mix -----------------------------------------------------------------------------------
+
+
+def test_the_mix_keeps_its_fraction_of_environments_on_the_earlier_stages():
+    curriculum = Curriculum(
+        TerraShiftConfig.preset("large"), CurriculumSettings(stages=3, mix=0.25)
+    )
+    assert curriculum.allocation(100) == [(0, 100)]  # nothing earlier yet
+    assert curriculum.allocation(100, stage=1) == [(0, 25), (1, 75)]
+    assert curriculum.allocation(100, stage=2) == [(0, 13), (1, 12), (2, 75)]
+    assert curriculum.allocation(3, stage=2) == [(0, 1), (2, 2)]  # too few for every stage
+    no_mix = Curriculum(TerraShiftConfig.preset("large"), CurriculumSettings(mix=0.0))
+    assert no_mix.allocation(100, stage=2) == [(2, 100)]
+
+
+def tiny(**overrides) -> TerraShiftConfig:
+    return TerraShiftConfig(
+        **{"column_shape": "box", "max_episode_steps": 8, "heightmap_resolution": 8, **overrides}
+    )
+
+
+def test_the_mixed_env_pads_earlier_stages_with_absent_agents_and_empty_slots():
+    small = tiny(grid_size=8, num_agents=2, num_objects=1, num_goals=1, spawn_margin=1)
+    large = tiny(grid_size=12, num_agents=3, num_objects=2, num_goals=2, spawn_margin=1)
+    env = MixedSceneEnv([small, large], [2, 3], seed=0)
+    alone = MixedSceneEnv([large], [3], seed=1)  # the same seed as the large scene above
+    torch.manual_seed(0)
+    action = torch.rand(5, 3, 6) * 2 - 1
+    for mixed in (env, alone):
+        mixed.reset()
+    out = env.step(env.reset().set(("agents", "action"), action))["next"]
+    own = alone.step(alone.reset().set(("agents", "action"), action[2:]))["next"]
+    assert out["agents", "mask"].tolist() == [[True, True, False]] * 2 + [[True] * 3] * 3
+    assert (out["agents", "observation"][:2, 2] == 0).all()
+    assert (out["objects"][:2, 1] == 0).all() and not out["objects_mask"][:2, 1].any()
+    # an absent agent holds the team's reward and done flags
+    torch.testing.assert_close(out["agents", "reward"][:2, 2], out["agents", "reward"][:2, 0])
+    # the large scene's environments step exactly as they do alone
+    torch.testing.assert_close(out[2:], own)
+
+
+def test_a_mixed_env_restored_from_its_state_steps_as_the_saved_one_did():
+    scenes = [tiny(num_agents=2, num_objects=1, num_goals=1), tiny(grid_size=20, num_agents=3)]
+    env = MixedSceneEnv(scenes, [2, 2], seed=0)
+    action = torch.zeros(4, 3, 6).uniform_(-1, 1, generator=torch.Generator().manual_seed(0))
+    td = env.reset().set(("agents", "action"), action)
+    for _ in range(3):
+        env.step(td)
+    saved = env.state_dict()
+    expected = env.step(td)["next"]
+    restored = MixedSceneEnv(scenes, [2, 2], seed=123)
+    restored.load_state_dict(saved)
+    torch.testing.assert_close(restored.step(td)["next"], expected)
+
+
+# --- resume --------------------------------------------------------------------------------
+
+
+def test_a_resumed_curriculum_continues_at_the_same_stage():
+    settings = CurriculumSettings(stages=4, threshold=0.5)
+    curriculum = Curriculum(TerraShiftConfig.preset("large"), settings)
+    curriculum.observe(0.6, env_steps=1_000)
+    curriculum.observe(0.55, env_steps=5_000)
+    resumed = Curriculum(TerraShiftConfig.preset("large"), settings)
+    resumed.load_state_dict(curriculum.state_dict())
+    assert (resumed.stage, resumed.advances) == (2, [1_000, 5_000])
+    assert resumed.scene == curriculum.scene
+    assert resumed.allocation(64) == curriculum.allocation(64)
+    other = Curriculum(TerraShiftConfig.preset("large"), CurriculumSettings(stages=3))
+    with pytest.raises(ValueError, match="resume with the curriculum and env settings"):
+        other.load_state_dict(curriculum.state_dict())
+
+
+# --- refusals ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("target", "settings", "message"),
+    [
+        ({"grid_size": 10}, {}, r"env.grid_size \(10\) is smaller than curriculum.start_grid"),
+        ({"num_agents": 4}, {}, r"env.num_agents \(4\) is smaller than curriculum.start_num_ag"),
+        ({"num_objects": 2, "num_goals": 2}, {}, "env.num_objects .* curriculum.start_num_obj"),
+        ({}, {}, "nothing to grow; use curriculum=none"),
+        (
+            {"grid_size": 30},
+            {"start_grid_size": 4},
+            r"stage 1 of 3 \(4x4 columns, 8 agents, 4 spheres\) is no scene the simulator holds",
+        ),
+        ({"grid_size": 30}, {"stages": 1}, "curriculum.stages must be an integer >= 2, got 1"),
+        ({"grid_size": 30}, {"threshold": 0.0}, r"curriculum.threshold must be a number in \(0"),
+        ({"grid_size": 30}, {"mix": 1.0}, r"curriculum.mix must be a number in \[0, 1\), got 1.0"),
+        ({"grid_size": 30}, {"kind": "manual"}, "curriculum.kind must be one of"),
+    ],
+)
+def test_an_inconsistent_curriculum_is_refused_naming_the_setting(target, settings, message):
+    with pytest.raises(ValueError, match=message):
+        Curriculum(TerraShiftConfig(**target), CurriculumSettings(**settings))
+
+
+def test_a_mix_that_leaves_the_current_stage_no_environment_is_refused():
+    curriculum = Curriculum(TerraShiftConfig.preset("large"), CurriculumSettings(mix=0.9))
+    with pytest.raises(ValueError, match="train.num_envs=1 with curriculum.mix=0.9"):
+        curriculum.allocation(1, stage=1)
+
+
+def test_mixed_scenes_need_one_heightmap_resolution_and_one_largest_scene():
+    with pytest.raises(ValueError, match="the same heightmap_resolution"):
+        MixedSceneEnv([tiny(), tiny(heightmap_resolution=16)], [1, 1])
+    with pytest.raises(ValueError, match="one scene must hold both the most agents and"):
+        MixedSceneEnv([tiny(num_agents=9), tiny(num_objects=5, num_goals=4)], [1, 1])
