@@ -4,10 +4,17 @@ from __future__ import annotations
 
 import pytest
 import torch
+from torchrl.envs import Compose, InitTracker, TransformedEnv
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import set_recurrent_mode
 
 from terrashift_rl.envs.mixed import MixedSceneEnv
+from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
+from terrashift_rl.objectives import ValueNormalizer
 from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.training.algorithms import ALGORITHMS
 from terrashift_rl.training.curriculum import Curriculum, CurriculumSettings, stage_scenes
+from terrashift_rl.training.trainer import TrainConfig
 
 
 def sizes(scenes):
@@ -163,3 +170,28 @@ def test_mixed_scenes_need_one_heightmap_resolution_and_one_largest_scene():
         MixedSceneEnv([tiny(), tiny(heightmap_resolution=16)], [1, 1])
     with pytest.raises(ValueError, match="one scene must hold both the most agents and"):
         MixedSceneEnv([tiny(num_agents=9), tiny(num_objects=5, num_goals=4)], [1, 1])
+
+
+def test_ma_pocas_loss_on_a_padded_scene_equals_its_loss_on_the_scene_alone():
+    """The mix pads earlier stages with absent agents and empty slots: MA-POCA's estimate and
+    loss on a stage's environments come out the same padded as alone."""
+    small = tiny(grid_size=8, num_agents=2, num_objects=1, num_goals=1, spawn_margin=1)
+    large = tiny(grid_size=12, num_agents=3, num_objects=2, num_goals=2, spawn_margin=1)
+    torch.manual_seed(0)
+    networks = make_terrashift_networks(TerraShiftModelConfig.small()).eval()
+    algorithm = ALGORITHMS["mapoca"](networks, TrainConfig(num_envs=2, minibatches=1))
+    losses = []
+    for scenes, counts in (([small], [2]), ([small, large], [2, 1])):
+        env = TransformedEnv(
+            MixedSceneEnv(scenes, counts, seed=0),
+            Compose(InitTracker(), networks.make_tensordict_primer(scenes[-1].num_agents)),
+        )
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            data = env.rollout(6, networks.actor)[:2]  # the small scene's environments
+        algorithm.value_normalizer.load_state_dict(ValueNormalizer().state_dict())
+        with torch.no_grad(), set_recurrent_mode(True):
+            algorithm.estimate(data)
+            losses.append(algorithm.loss(data))
+    alone, padded = losses
+    for term in ("loss_objective", "loss_critic", "loss_baseline", "loss_entropy"):
+        torch.testing.assert_close(padded[term], alone[term], rtol=1e-4, atol=1e-6)
