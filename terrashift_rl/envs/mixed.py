@@ -1,4 +1,4 @@
-"""Several TerraShift scenes stepped as one batch, padded to the largest scene's agents and
+"""Several TerraShift scenes stepped as one batch, padded to fixed numbers of agents and
 spheres."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
-from terrashift_rl.envs.terrashift import GROUP, TerraShiftEnv
+from terrashift_rl.envs.terrashift import GROUP, TerraShiftEnv, set_specs
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.sim.types import AGENT_FEATURES, OBJECT_FEATURES
 
@@ -23,18 +23,23 @@ class MixedSceneEnv(EnvBase):
 
     One simulator holds one scene, so each scene keeps its own :class:`TerraShiftEnv`; this env
     steps them all and concatenates their outputs along the batch, in the order of ``scenes``.
-    A scene with fewer agents or spheres than the largest is padded: the extra agents are
-    absent (``("agents", "mask")`` False, observation zeros, the team's reward and done flags),
-    the extra object slots empty (``objects_mask`` False, features zeros), and the actions
-    of absent agents are dropped. Networks that attend over agents and objects take the
-    padded batch as it is; a loss must leave absent agents out (MA-POCA's does).
+    Every scene is padded to ``num_agents`` agents and ``num_objects`` object slots: the extra
+    agents are absent (``("agents", "mask")`` False, observation zeros, the team's reward and
+    done flags), the extra slots empty (``objects_mask`` False, features zeros), and the actions
+    of absent agents are dropped. Networks that attend over agents and objects take the padded
+    batch as it is; a loss must leave absent agents out (MA-POCA's does).
 
-    Every scene must have the same heightmap resolution, and one scene must hold both the most
-    agents and the most spheres (the specs are that scene's over every environment).
+    The specs are fixed at construction, so :meth:`set_scenes` can swap the scenes for others
+    (a curriculum's next stage) under the same policy, transforms and captured graphs.
 
     Args:
-        scenes: the scenes, each a :class:`~terrashift_rl.sim.TerraShiftConfig`.
+        scenes: the scenes, each a :class:`~terrashift_rl.sim.TerraShiftConfig`, all with the
+            first's heightmap resolution.
         num_envs: environments of each scene, each >= 1.
+
+    Keyword Args:
+        num_agents: agents every scene is padded to; the scenes' most if None.
+        num_objects: object slots every scene is padded to; the scenes' most if None.
         device: where to simulate.
         seed: scene ``i``'s simulator is seeded with ``seed + i``.
 
@@ -53,45 +58,66 @@ class MixedSceneEnv(EnvBase):
         scenes: Sequence[TerraShiftConfig],
         num_envs: Sequence[int],
         *,
+        num_agents: int | None = None,
+        num_objects: int | None = None,
         device: str | torch.device = "cpu",
         seed: int = 0,
     ) -> None:
-        if not scenes or len(scenes) != len(num_envs):
+        if not scenes:
+            raise ValueError("MixedSceneEnv needs at least one scene")
+        self.num_agents = max(s.num_agents for s in scenes) if num_agents is None else num_agents
+        self.num_objects = (
+            max(s.num_objects for s in scenes) if num_objects is None else num_objects
+        )
+        self.heightmap_resolution = scenes[0].heightmap_resolution
+        super().__init__(device=device, batch_size=torch.Size([sum(num_envs)]))
+        self.set_scenes(scenes, num_envs, seed=seed)
+        set_specs(
+            self,
+            num_agents=self.num_agents,
+            num_objects=self.num_objects,
+            heightmap_resolution=self.heightmap_resolution,
+        )
+
+    def set_scenes(
+        self, scenes: Sequence[TerraShiftConfig], num_envs: Sequence[int], *, seed: int
+    ) -> None:
+        """Replaces the scenes by ``scenes`` with ``num_envs`` environments each (as many in all
+        as this env has, each scene within its padding and heightmap resolution); their
+        episodes start at the next reset. Scene ``i``'s simulator is seeded with ``seed + i``.
+        """
+        if len(scenes) != len(num_envs):
             raise ValueError(
                 f"MixedSceneEnv needs one count of environments per scene, got {len(scenes)} "
                 f"scene(s) and num_envs={list(num_envs)}"
             )
         if any(isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in num_envs):
             raise ValueError(f"num_envs must hold integers >= 1, got {list(num_envs)}")
-        resolutions = {scene.heightmap_resolution for scene in scenes}
-        if len(resolutions) != 1:
+        if sum(num_envs) != self.batch_size[0]:
             raise ValueError(
-                f"every scene needs the same heightmap_resolution, got {sorted(resolutions)}"
+                f"num_envs={list(num_envs)} holds {sum(num_envs)} environments, this env "
+                f"{self.batch_size[0]}"
             )
-        largest = max(range(len(scenes)), key=lambda i: scenes[i].num_agents)
-        self.num_agents = scenes[largest].num_agents
-        self.num_objects = max(scene.num_objects for scene in scenes)
-        if scenes[largest].num_objects != self.num_objects:
-            raise ValueError(
-                "one scene must hold both the most agents and the most spheres, got "
-                f"(num_agents, num_objects) = {[(s.num_agents, s.num_objects) for s in scenes]}"
-            )
+        for scene in scenes:
+            if (
+                scene.num_agents > self.num_agents
+                or scene.num_objects > self.num_objects
+                or scene.heightmap_resolution != self.heightmap_resolution
+            ):
+                raise ValueError(
+                    f"a scene of {scene.num_agents} agents, {scene.num_objects} spheres and a "
+                    f"{scene.heightmap_resolution}-ray heightmap does not fit this env's "
+                    f"{self.num_agents} agents, {self.num_objects} object slots and "
+                    f"{self.heightmap_resolution}-ray heightmap"
+                )
         self.envs = [
-            TerraShiftEnv(scene, num_envs=n, device=device, seed=seed + i)
+            TerraShiftEnv(scene, num_envs=n, device=self.device, seed=seed + i)
             for i, (scene, n) in enumerate(zip(scenes, num_envs, strict=True))
         ]
         self.scenes = list(scenes)
-        self.counts = list(num_envs)
-        total = sum(num_envs)
         self._rows = [
             slice(end - n, end) for n, end in zip(num_envs, accumulate(num_envs), strict=True)
         ]
-        super().__init__(device=self.envs[0].device, batch_size=torch.Size([total]))
-        template = self.envs[largest]
-        self.observation_spec = template.observation_spec[0].expand(total)
-        self.action_spec = template.action_spec[0].expand(total)
-        self.reward_spec = template.reward_spec[0].expand(total)
-        self.done_spec = template.done_spec[0].expand(total)
 
     # --- EnvBase API ----------------------------------------------------------------------
     def _set_seed(self, seed: int | None) -> None:
@@ -119,11 +145,14 @@ class MixedSceneEnv(EnvBase):
             env.stagger_episodes()
 
     def state_dict(self) -> dict[str, dict[str, torch.Tensor]]:
-        """The simulator state of every scene, by its index in ``scenes``."""
-        return {str(i): env.sim.state_dict() for i, env in enumerate(self.envs)}
+        """The simulator state of every scene (on the CPU), by its index in ``scenes``."""
+        return {
+            str(i): {name: value.cpu() for name, value in env.sim.state_dict().items()}
+            for i, env in enumerate(self.envs)
+        }
 
     def load_state_dict(self, state: dict[str, dict[str, torch.Tensor]]) -> None:
-        """Restores a :meth:`state_dict` of an env built with the same scenes and counts."""
+        """Restores a :meth:`state_dict` of an env with the same scenes and counts."""
         if sorted(state) != sorted(str(i) for i in range(len(self.envs))):
             raise ValueError(
                 f"the saved state holds scenes {sorted(state)}, this env {len(self.envs)}"
@@ -166,9 +195,7 @@ class MixedSceneEnv(EnvBase):
             out.set(GROUP, torch.cat([agents, extra], dim=1))
         if extra_objects:
             objects, mask = out.get("objects"), out.get("objects_mask")
-            out.set(
-                "objects",
-                torch.cat([objects, objects.new_zeros(n, extra_objects, OBJECT_FEATURES)], 1),
-            )
+            padding = objects.new_zeros(n, extra_objects, OBJECT_FEATURES)
+            out.set("objects", torch.cat([objects, padding], 1))
             out.set("objects_mask", torch.cat([mask, mask.new_zeros(n, extra_objects)], 1))
         return out

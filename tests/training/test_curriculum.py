@@ -101,6 +101,19 @@ def test_the_mixed_env_pads_earlier_stages_with_absent_agents_and_empty_slots():
     torch.testing.assert_close(out[2:], own)
 
 
+def test_set_scenes_swaps_the_scenes_under_the_same_specs():
+    first = tiny(grid_size=8, num_agents=2, num_objects=1, num_goals=1, spawn_margin=1)
+    second = tiny(grid_size=12, num_agents=4, num_objects=3, num_goals=3, spawn_margin=1)
+    env = MixedSceneEnv([first], [3], num_agents=4, num_objects=3, seed=0)
+    specs = env.full_observation_spec.clone()
+    assert env.rollout(2)["agents", "mask"].sum(-1).unique().tolist() == [2]
+    env.set_scenes([first, second], [1, 2], seed=5)
+    td = env.rollout(2)
+    assert env.full_observation_spec == specs
+    assert td["agents", "mask"][:, 0].sum(-1).tolist() == [2, 4, 4]
+    assert td["objects_mask"].shape == (3, 2, 3)
+
+
 def test_a_mixed_env_restored_from_its_state_steps_as_the_saved_one_did():
     scenes = [tiny(num_agents=2, num_objects=1, num_goals=1), tiny(grid_size=20, num_agents=3)]
     env = MixedSceneEnv(scenes, [2, 2], seed=0)
@@ -165,11 +178,14 @@ def test_a_mix_that_leaves_the_current_stage_no_environment_is_refused():
         curriculum.allocation(1, stage=1)
 
 
-def test_mixed_scenes_need_one_heightmap_resolution_and_one_largest_scene():
-    with pytest.raises(ValueError, match="the same heightmap_resolution"):
+def test_a_scene_that_does_not_fit_the_mixed_envs_padding_is_refused():
+    with pytest.raises(ValueError, match="a 16-ray heightmap does not fit this env's"):
         MixedSceneEnv([tiny(), tiny(heightmap_resolution=16)], [1, 1])
-    with pytest.raises(ValueError, match="one scene must hold both the most agents and"):
-        MixedSceneEnv([tiny(num_agents=9), tiny(num_objects=5, num_goals=4)], [1, 1])
+    env = MixedSceneEnv([tiny()], [2], num_agents=9, num_objects=5)
+    with pytest.raises(ValueError, match="10 agents, 4 spheres .* does not fit this env's 9"):
+        env.set_scenes([tiny(num_agents=10)], [2], seed=0)
+    with pytest.raises(ValueError, match=r"num_envs=\[1, 2\] holds 3 environments, this env 2"):
+        env.set_scenes([tiny(), tiny()], [1, 2], seed=0)
 
 
 def test_ma_pocas_loss_on_a_padded_scene_equals_its_loss_on_the_scene_alone():
