@@ -144,15 +144,15 @@ class MixedSceneEnv(EnvBase):
         for env in self.envs:
             env.stagger_episodes()
 
-    def state_dict(self) -> dict[str, dict[str, torch.Tensor]]:
+    def simulator_state(self) -> dict[str, dict[str, torch.Tensor]]:
         """The simulator state of every scene (on the CPU), by its index in ``scenes``."""
         return {
             str(i): {name: value.cpu() for name, value in env.sim.state_dict().items()}
             for i, env in enumerate(self.envs)
         }
 
-    def load_state_dict(self, state: dict[str, dict[str, torch.Tensor]]) -> None:
-        """Restores a :meth:`state_dict` of an env with the same scenes and counts."""
+    def load_simulator_state(self, state: dict[str, dict[str, torch.Tensor]]) -> None:
+        """Restores a :meth:`simulator_state` of an env with the same scenes and counts."""
         if sorted(state) != sorted(str(i) for i in range(len(self.envs))):
             raise ValueError(
                 f"the saved state holds scenes {sorted(state)}, this env {len(self.envs)}"

@@ -30,9 +30,20 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+import torch
+from torchrl.envs import Compose, InitTracker, TransformedEnv
+
+from terrashift_rl.envs.mixed import MixedSceneEnv
+from terrashift_rl.modules import TerraShiftNetworks
 from terrashift_rl.sim import TerraShiftConfig
 
-__all__ = ["CURRICULUM_KINDS", "Curriculum", "CurriculumSettings", "stage_scenes"]
+__all__ = [
+    "CURRICULUM_KINDS",
+    "Curriculum",
+    "CurriculumSettings",
+    "make_curriculum_env",
+    "stage_scenes",
+]
 
 CURRICULUM_KINDS = ("none", "auto")
 """Values of :attr:`CurriculumSettings.kind`."""
@@ -162,10 +173,11 @@ class Curriculum:
         >>> curriculum = Curriculum(TerraShiftConfig.preset("finetune"), CurriculumSettings())
         >>> curriculum.describe()
         'stage 1/3: 15x15 columns, 8 agents, 4 spheres'
-        >>> curriculum.observe(0.85, env_steps=1000), curriculum.describe()
-        (True, 'stage 2/3: 23x23 columns, 12 agents, 4 spheres')
-        >>> curriculum.allocation(num_envs=16)
-        [(0, 4), (1, 12)]
+        >>> curriculum.passes(0.85)
+        True
+        >>> curriculum.advance(env_steps=1000)
+        >>> curriculum.describe(), curriculum.allocation(num_envs=16)
+        ('stage 2/3: 23x23 columns, 12 agents, 4 spheres', [(0, 4), (1, 12)])
     """
 
     def __init__(self, target: TerraShiftConfig, settings: CurriculumSettings) -> None:
@@ -195,14 +207,17 @@ class Curriculum:
             f"{objects} spheres"
         )
 
-    def observe(self, goal_fraction: float, *, env_steps: int) -> bool:
-        """Takes an in-training evaluation's goal fraction at the current stage; advances to the
-        next stage if it reaches the threshold. Returns whether it advanced."""
-        if self.final or goal_fraction < self.settings.threshold:
-            return False
+    def passes(self, goal_fraction: float) -> bool:
+        """Whether an in-training evaluation's goal fraction at the current stage lets the run
+        advance: it reaches the threshold and a next stage exists."""
+        return not self.final and goal_fraction >= self.settings.threshold
+
+    def advance(self, *, env_steps: int) -> None:
+        """Starts the next stage at ``env_steps``."""
+        if self.final:
+            raise ValueError(f"the curriculum is at its last stage ({self.describe()})")
         self.stage += 1
         self.advances.append(env_steps)
-        return True
 
     def allocation(self, num_envs: int, stage: int | None = None) -> list[tuple[int, int]]:
         """``(stage, environments)`` of every stage in the mix at ``stage`` (the current one if
@@ -222,6 +237,22 @@ class Curriculum:
         share, remainder = divmod(earlier, max(stage, 1))
         counts = [(i, share + (i < remainder)) for i in range(stage)]
         return [(i, n) for i, n in counts if n] + [(stage, num_envs - earlier)]
+
+    def mix(self, num_envs: int) -> tuple[list[TerraShiftConfig], list[int]]:
+        """The scenes of :meth:`allocation` and their environments, as
+        :class:`~terrashift_rl.envs.mixed.MixedSceneEnv` takes them."""
+        allocation = self.allocation(num_envs)
+        return [self.scenes[i] for i, _ in allocation], [n for _, n in allocation]
+
+    def stage_seed(self, seed: int) -> int:
+        """The seed of the current stage's mix for a run seeded ``seed``: the scene in place
+        ``i`` of the mix gets ``seed + stage * stages + i``, so every stage's streams differ."""
+        return seed + self.stage * len(self.scenes)
+
+    def seat(self, env: MixedSceneEnv, *, seed: int) -> None:
+        """Gives ``env`` the current stage's :meth:`mix` over its environments; their episodes
+        start at the next reset."""
+        env.set_scenes(*self.mix(env.batch_size[0]), seed=self.stage_seed(seed))
 
     def state_dict(self) -> dict[str, Any]:
         """The stage, the env-steps of each advance and the stages' sizes."""
@@ -243,3 +274,28 @@ class Curriculum:
             )
         self.stage = state["stage"]
         self.advances = list(state["advances"])
+
+
+def make_curriculum_env(
+    curriculum: Curriculum,
+    networks: TerraShiftNetworks,
+    *,
+    num_envs: int,
+    device: torch.device | str,
+    seed: int,
+) -> TransformedEnv:
+    """The training environments of ``curriculum``: its current stage's mix
+    (:meth:`Curriculum.seat`) in a :class:`~terrashift_rl.envs.mixed.MixedSceneEnv` padded to
+    the target's agents and spheres from the first stage on, so that the batch keeps its shapes
+    (and a captured graph stays valid) through every advance, with the transforms the recurrent
+    policy needs (``is_init`` and its state)."""
+    target = curriculum.scenes[-1]
+    base = MixedSceneEnv(
+        *curriculum.mix(num_envs),
+        num_agents=target.num_agents,
+        num_objects=target.num_objects,
+        device=device,
+        seed=curriculum.stage_seed(seed),
+    )
+    primer = networks.make_tensordict_primer(target.num_agents)
+    return TransformedEnv(base, Compose(InitTracker(), primer))

@@ -13,7 +13,12 @@ from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_network
 from terrashift_rl.objectives import ValueNormalizer
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training.algorithms import ALGORITHMS
-from terrashift_rl.training.curriculum import Curriculum, CurriculumSettings, stage_scenes
+from terrashift_rl.training.curriculum import (
+    Curriculum,
+    CurriculumSettings,
+    make_curriculum_env,
+    stage_scenes,
+)
 from terrashift_rl.training.trainer import TrainConfig
 
 
@@ -49,13 +54,16 @@ def test_equal_consecutive_stages_are_merged_and_goals_follow_the_target():
 
 def test_a_stage_advances_when_an_evaluation_reaches_the_threshold_and_not_before():
     curriculum = Curriculum(TerraShiftConfig.preset("large"), CurriculumSettings(threshold=0.7))
-    assert not curriculum.observe(0.69, env_steps=100)
-    assert curriculum.stage == 0
-    assert curriculum.observe(0.7, env_steps=200)
+    assert not curriculum.passes(0.69)
+    assert curriculum.passes(0.7)
+    curriculum.advance(env_steps=200)
     assert curriculum.scene.grid_size == 30
-    assert curriculum.observe(0.95, env_steps=300)
+    assert curriculum.passes(0.95)
+    curriculum.advance(env_steps=300)
     assert curriculum.final and curriculum.scene == TerraShiftConfig.preset("large")
-    assert not curriculum.observe(1.0, env_steps=400)  # the target is kept
+    assert not curriculum.passes(1.0)  # the target is kept
+    with pytest.raises(ValueError, match="at its last stage"):
+        curriculum.advance(env_steps=400)
     assert (curriculum.stage, curriculum.advances) == (2, [200, 300])
     assert curriculum.describe() == "stage 3/3: 45x45 columns, 24 agents, 8 spheres"
 
@@ -121,21 +129,41 @@ def test_a_mixed_env_restored_from_its_state_steps_as_the_saved_one_did():
     td = env.reset().set(("agents", "action"), action)
     for _ in range(3):
         env.step(td)
-    saved = env.state_dict()
+    saved = env.simulator_state()
     expected = env.step(td)["next"]
     restored = MixedSceneEnv(scenes, [2, 2], seed=123)
-    restored.load_state_dict(saved)
+    restored.load_simulator_state(saved)
     torch.testing.assert_close(restored.step(td)["next"], expected)
+
+
+def test_the_curriculum_env_keeps_its_shapes_through_an_advance():
+    target = tiny(grid_size=12, num_agents=4, num_objects=2, num_goals=2, spawn_margin=1)
+    settings = CurriculumSettings(
+        stages=2, start_grid_size=8, start_num_agents=2, start_num_objects=1, mix=0.5
+    )
+    curriculum = Curriculum(target, settings)
+    networks = make_terrashift_networks(TerraShiftModelConfig.small())
+    env = make_curriculum_env(curriculum, networks, num_envs=4, device="cpu", seed=0)
+    with torch.no_grad():
+        before = env.rollout(2, networks.actor)
+        curriculum.advance(env_steps=8)
+        curriculum.seat(env.base_env, seed=0)
+        after = env.rollout(2, networks.actor)
+    assert [scene.grid_size for scene in env.base_env.scenes] == [8, 12]
+    assert before["agents", "observation"].shape == after["agents", "observation"].shape
+    assert before["agents", "mask"][:, 0].sum(-1).tolist() == [2, 2, 2, 2]
+    assert after["agents", "mask"][:, 0].sum(-1).tolist() == [2, 2, 4, 4]
+    assert after["objects_mask"].shape == (4, 2, 2)
 
 
 # --- resume --------------------------------------------------------------------------------
 
 
 def test_a_resumed_curriculum_continues_at_the_same_stage():
-    settings = CurriculumSettings(stages=4, threshold=0.5)
+    settings = CurriculumSettings(stages=4)
     curriculum = Curriculum(TerraShiftConfig.preset("large"), settings)
-    curriculum.observe(0.6, env_steps=1_000)
-    curriculum.observe(0.55, env_steps=5_000)
+    curriculum.advance(env_steps=1_000)
+    curriculum.advance(env_steps=5_000)
     resumed = Curriculum(TerraShiftConfig.preset("large"), settings)
     resumed.load_state_dict(curriculum.state_dict())
     assert (resumed.stage, resumed.advances) == (2, [1_000, 5_000])
