@@ -8,6 +8,7 @@ from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import set_recurrent_mode
 
+from terrashift_rl.envs import TerraShiftEnv
 from terrashift_rl.envs.mixed import MixedSceneEnv
 from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
 from terrashift_rl.objectives import ValueNormalizer
@@ -92,21 +93,29 @@ def tiny(**overrides) -> TerraShiftConfig:
 def test_the_mixed_env_pads_earlier_stages_with_absent_agents_and_empty_slots():
     small = tiny(grid_size=8, num_agents=2, num_objects=1, num_goals=1, spawn_margin=1)
     large = tiny(grid_size=12, num_agents=3, num_objects=2, num_goals=2, spawn_margin=1)
+    small, large = small.replace(max_episode_steps=2), large.replace(max_episode_steps=3)
     env = MixedSceneEnv([small, large], [2, 3], seed=0)
-    alone = MixedSceneEnv([large], [3], seed=1)  # the same seed as the large scene above
-    torch.manual_seed(0)
-    action = torch.rand(5, 3, 6) * 2 - 1
-    for mixed in (env, alone):
-        mixed.reset()
-    out = env.step(env.reset().set(("agents", "action"), action))["next"]
-    own = alone.step(alone.reset().set(("agents", "action"), action[2:]))["next"]
-    assert out["agents", "mask"].tolist() == [[True, True, False]] * 2 + [[True] * 3] * 3
-    assert (out["agents", "observation"][:2, 2] == 0).all()
-    assert (out["objects"][:2, 1] == 0).all() and not out["objects_mask"][:2, 1].any()
-    # an absent agent holds the team's reward and done flags
-    torch.testing.assert_close(out["agents", "reward"][:2, 2], out["agents", "reward"][:2, 0])
-    # the large scene's environments step exactly as they do alone
-    torch.testing.assert_close(out[2:], own)
+    alone = TerraShiftEnv(large, num_envs=3, seed=1)  # the same seed as the large scene above
+    td, own_td = env.reset(), alone.reset()
+    generator, truncated = torch.Generator().manual_seed(0), []
+    for _ in range(7):  # past the step limits: the scenes reset apart
+        action = torch.rand(5, 3, 6, generator=generator) * 2 - 1
+        out, td = env.step_and_maybe_reset(td.set(("agents", "action"), action))
+        own, own_td = alone.step_and_maybe_reset(own_td.set(("agents", "action"), action[2:]))
+        # the large scene's environments step and reset exactly as they do alone
+        torch.testing.assert_close(out[2:].exclude("agents"), own.exclude("agents"))
+        torch.testing.assert_close(out["next", "agents"][2:], own["next", "agents"])
+        torch.testing.assert_close(td[2:].exclude("agents"), own_td.exclude("agents"))
+        nxt = out["next"]
+        truncated.append(nxt["truncated"][[0, 2], 0].tolist())
+        assert nxt["agents", "mask"].tolist() == [[True, True, False]] * 2 + [[True] * 3] * 3
+        assert (nxt["agents", "observation"][:2, 2] == 0).all()
+        assert (nxt["objects"][:2, 1] == 0).all() and not nxt["objects_mask"][:2, 1].any()
+        # an absent agent holds the team's reward and done flags
+        for key in ("reward", "done", "terminated", "truncated"):
+            torch.testing.assert_close(nxt["agents", key][:, 2], nxt["agents", key][:, 0])
+    # (small, large) truncate at their step limits, 2 and 3 decisions
+    assert truncated == [[0, 0], [1, 0], [0, 1], [1, 0], [0, 0], [1, 1], [0, 0]]
 
 
 def test_set_scenes_swaps_the_scenes_under_the_same_specs():
