@@ -10,15 +10,20 @@ paper, Section 5.2.2), while a policy that learnt a small scene transfers to a l
   up; goals are the target's, at most one per sphere; every other field is the target's.
   Consecutive stages that come out equal are merged. A stage the simulator cannot hold (more
   spheres and goals than its spawn places) is refused at start-up, naming the settings.
-- **Advance**: when an in-training evaluation (evaluation mode, on the current stage's scene)
-  reaches a goal fraction of ``threshold``, the next stage starts; the last stage is kept.
+- **Advance**: every ``eval_every`` iterations an evaluation (evaluation mode) scores the
+  current stage's scene; when its goal fraction reaches ``threshold``, the next stage starts.
+  The last stage is kept.
 - **Mix**: from the second stage on, a fraction ``mix`` of the training environments stays on
   the earlier stages, spread evenly over them (the earliest first where they do not divide),
   so that what was learnt there is kept. One simulator holds one grid size, so each stage in
   the mix has its own batch of environments; :class:`~terrashift_rl.envs.mixed.MixedSceneEnv`
-  steps them as one batch padded to the current stage's agents and spheres, which the
-  networks (attention over agents and objects) and MA-POCA's loss (absent agents masked out)
-  take as they are.
+  steps them as one batch padded to the target's agents and spheres, which the networks
+  (attention over agents and objects) and MA-POCA's loss (absent agents masked out) take as
+  they are. The padding is the target's from the first stage on, so the batch keeps its shapes
+  through every advance (the policy's captured graphs, the transforms and the checkpoints'
+  carried tensordict stay valid); the price is the networks' work on absent agents in the
+  early stages (a 15 x 15 stage with 8 agents padded to 24 costs the agent-wise layers three
+  times its own).
 
 :meth:`Curriculum.state_dict` holds the stage and the env-steps of each advance, so a resumed
 run continues at the same stage.
@@ -71,6 +76,10 @@ class CurriculumSettings:
     threshold: float = 0.8
     """Goal fraction of an in-training evaluation at the current stage at which the next
     stage starts, in (0, 1]."""
+    eval_every: int = 10
+    """Iterations between the evaluations of the current stage that decide an advance
+    (evaluation mode, ``run.eval_episodes`` episodes of ``run.eval_seed``'s scenes), >= 1;
+    none once the target is reached (``run.eval_every`` scores the target throughout)."""
     mix: float = 0.25
     """Fraction of the training environments kept on earlier stages once there are any, in
     [0, 1). Above 0 with a stage of fewer agents than the current one, the environments are
@@ -84,6 +93,7 @@ class CurriculumSettings:
             )
         for name, minimum in (
             ("stages", 2),
+            ("eval_every", 1),
             ("start_grid_size", 2),
             ("start_num_agents", 1),
             ("start_num_objects", 1),
