@@ -202,6 +202,7 @@ def test_a_resumed_curriculum_continues_at_the_same_stage():
         ({"grid_size": 30}, {"threshold": 0.0}, r"curriculum.threshold must be a number in \(0"),
         ({"grid_size": 30}, {"mix": 1.0}, r"curriculum.mix must be a number in \[0, 1\), got 1.0"),
         ({"grid_size": 30}, {"kind": "manual"}, "curriculum.kind must be one of"),
+        ({"grid_size": 30}, {"eval_every": 0}, "curriculum.eval_every must be an integer >= 1"),
     ],
 )
 def test_an_inconsistent_curriculum_is_refused_naming_the_setting(target, settings, message):
