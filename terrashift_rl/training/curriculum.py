@@ -197,6 +197,30 @@ class Curriculum:
         self.advances: list[int] = []
         """Env-steps at which each stage after the first started."""
 
+    def check_training(self, *, algo: str, teacher: bool, num_envs: int) -> None:
+        """Raises ``ValueError`` naming the setting that this curriculum cannot train with:
+        an algorithm other than MA-POCA (the padding's absent agents would enter its loss), the
+        scripted teacher (it plays one scene) or too few environments for the mix.
+
+        Example:
+            >>> curriculum = Curriculum(TerraShiftConfig.preset("large"), CurriculumSettings())
+            >>> curriculum.check_training(algo="mappo", teacher=False, num_envs=64)
+            Traceback (most recent call last):
+            ...
+            ValueError: curriculum=auto pads the early stages with absent agents, which only ...
+        """
+        if algo != "mapoca":
+            raise ValueError(
+                "curriculum=auto pads the early stages with absent agents, which only "
+                f"train.algo=mapoca's loss leaves out; got train.algo={algo}"
+            )
+        if teacher:
+            raise ValueError(
+                "curriculum=auto trains on several scenes at once and the scripted teacher plays "
+                "one; set loss.teacher_coeff=0"
+            )
+        self.allocation(num_envs, stage=len(self.scenes) - 1)
+
     @property
     def scene(self) -> TerraShiftConfig:
         """The current stage's scene."""

@@ -210,10 +210,21 @@ def test_an_inconsistent_curriculum_is_refused_naming_the_setting(target, settin
         Curriculum(TerraShiftConfig(**target), CurriculumSettings(**settings))
 
 
-def test_a_mix_that_leaves_the_current_stage_no_environment_is_refused():
+@pytest.mark.parametrize(
+    ("training", "message"),
+    [
+        ({"algo": "ippo"}, "only train.algo=mapoca's loss leaves out; got train.algo=ippo"),
+        ({"teacher": True}, "set loss.teacher_coeff=0"),
+        ({"num_envs": 1}, "train.num_envs=1 with curriculum.mix=0.9 leaves no environment"),
+    ],
+)
+def test_training_settings_a_curriculum_cannot_train_with_are_refused(training, message):
     curriculum = Curriculum(TerraShiftConfig.preset("large"), CurriculumSettings(mix=0.9))
-    with pytest.raises(ValueError, match="train.num_envs=1 with curriculum.mix=0.9"):
-        curriculum.allocation(1, stage=1)
+    curriculum.check_training(algo="mapoca", teacher=False, num_envs=64)
+    with pytest.raises(ValueError, match=message):
+        curriculum.check_training(
+            **{"algo": "mapoca", "teacher": False, "num_envs": 64, **training}
+        )
 
 
 def test_a_scene_that_does_not_fit_the_mixed_envs_padding_is_refused():
