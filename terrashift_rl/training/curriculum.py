@@ -81,9 +81,8 @@ class CurriculumSettings:
     (evaluation mode, ``run.eval_episodes`` episodes of ``run.eval_seed``'s scenes), >= 1;
     none once the target is reached (``run.eval_every`` scores the target throughout)."""
     mix: float = 0.25
-    """Fraction of the training environments kept on earlier stages once there are any, in
-    [0, 1). Above 0 with a stage of fewer agents than the current one, the environments are
-    padded with absent agents, which only ``train.algo=mapoca``'s loss leaves out."""
+    """Fraction of the training environments kept on earlier stages once there are any,
+    spread evenly over them, in [0, 1)."""
 
     def validate(self) -> None:
         """Raises ``ValueError`` naming the first setting outside its range."""
