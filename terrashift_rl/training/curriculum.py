@@ -39,6 +39,7 @@ import torch
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 
 from terrashift_rl.envs.mixed import MixedSceneEnv
+from terrashift_rl.fields import at_least, check_fields, interval, one_of, setting
 from terrashift_rl.modules import TerraShiftNetworks
 from terrashift_rl.sim import TerraShiftConfig
 
@@ -59,57 +60,40 @@ _SIZES = ("grid_size", "num_agents", "num_objects")
 
 @dataclass
 class CurriculumSettings:
-    """The ``curriculum`` config group: whether and how the scene grows during training."""
+    """The ``curriculum`` group: whether and how the scene grows during training.
 
-    kind: str = "none"
+    Example:
+        >>> CurriculumSettings(kind="auto", mix=1.0)
+        Traceback (most recent call last):
+        ...
+        ValueError: curriculum.mix must be a finite number in [0, 1), got 1.0
+    """
+
+    kind: str = setting("none", one_of(*CURRICULUM_KINDS))
     """``none``: train on the ``env`` group's scene from the start; ``auto``: stages from the
     start scene below to the ``env`` group's scene."""
-    stages: int = 3
-    """Scenes from the start to the target, both included, >= 2 (3 from the pretraining scene
-    to ``env=large``: 15 x 15 / 8 agents / 4 spheres, 30 x 30 / 16 / 6, 45 x 45 / 24 / 8)."""
-    start_grid_size: int = 15
-    """Columns per side of the first stage's grid, >= 2."""
-    start_num_agents: int = 8
-    """Wave agents of the first stage, >= 1."""
-    start_num_objects: int = 4
-    """Spheres of the first stage, >= 1."""
-    threshold: float = 0.8
+    stages: int = setting(3, at_least(2))
+    """Scenes from the start to the target, both included (3 from the pretraining scene to
+    ``env=large``: 15 x 15 / 8 agents / 4 spheres, 30 x 30 / 16 / 6, 45 x 45 / 24 / 8)."""
+    start_grid_size: int = setting(15, at_least(2))
+    """Columns per side of the first stage's grid."""
+    start_num_agents: int = setting(8, at_least(1))
+    """Wave agents of the first stage."""
+    start_num_objects: int = setting(4, at_least(1))
+    """Spheres of the first stage."""
+    threshold: float = setting(0.8, interval(0, 1, low_open=True))
     """Goal fraction of an in-training evaluation at the current stage at which the next
-    stage starts, in (0, 1]."""
-    eval_every: int = 10
+    stage starts."""
+    eval_every: int = setting(10, at_least(1))
     """Iterations between the evaluations of the current stage that decide an advance
-    (evaluation mode, ``run.eval_episodes`` episodes of ``run.eval_seed``'s scenes), >= 1;
-    none once the target is reached (``run.eval_every`` scores the target throughout)."""
-    mix: float = 0.25
+    (evaluation mode, ``run.eval_episodes`` episodes of ``run.eval_seed``'s scenes); none once
+    the target is reached (``run.eval_every`` scores the target throughout)."""
+    mix: float = setting(0.25, interval(0, 1, high_open=True))
     """Fraction of the training environments kept on earlier stages once there are any,
-    spread evenly over them, in [0, 1)."""
+    spread evenly over them."""
 
-    def validate(self) -> None:
-        """Raises ``ValueError`` naming the first setting outside its range."""
-        if self.kind not in CURRICULUM_KINDS:
-            raise ValueError(
-                f"curriculum.kind must be one of {CURRICULUM_KINDS}, got {self.kind!r}"
-            )
-        for name, minimum in (
-            ("stages", 2),
-            ("eval_every", 1),
-            ("start_grid_size", 2),
-            ("start_num_agents", 1),
-            ("start_num_objects", 1),
-        ):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-                raise ValueError(
-                    f"curriculum.{name} must be an integer >= {minimum}, got {value!r}"
-                )
-        for name, allowed, test in (
-            ("threshold", "in (0, 1]", lambda value: 0.0 < value <= 1.0),
-            ("mix", "in [0, 1)", lambda value: 0.0 <= value < 1.0),
-        ):
-            value = getattr(self, name)
-            number = isinstance(value, int | float) and not isinstance(value, bool)
-            if not (number and math.isfinite(value) and test(value)):
-                raise ValueError(f"curriculum.{name} must be a number {allowed}, got {value!r}")
+    def __post_init__(self) -> None:
+        check_fields(self, "curriculum")
 
 
 def _sizes(scene: TerraShiftConfig) -> tuple[int, int, int]:
@@ -129,7 +113,6 @@ def stage_scenes(target: TerraShiftConfig, settings: CurriculumSettings) -> list
         >>> [(s.grid_size, s.num_agents, s.num_objects, s.num_goals) for s in scenes]
         [(15, 8, 4, 4), (30, 16, 6, 6), (45, 24, 8, 8)]
     """
-    settings.validate()
     start = tuple(getattr(settings, f"start_{name}") for name in _SIZES)
     end = _sizes(target)
     for name, first, last in zip(_SIZES, start, end, strict=True):

@@ -3,18 +3,21 @@
 Each config group of ``recipes/configs`` is a dataclass whose fields carry their type, default,
 allowed range (:func:`~terrashift_rl.fields.setting`) and a docstring:
 
-========== ===================================================================================
-group      settings
-========== ===================================================================================
-``env``    :class:`~terrashift_rl.sim.TerraShiftConfig` (the simulator's scene)
-``model``  :class:`~terrashift_rl.modules.TerraShiftModelConfig` (network sizes)
-``train``  :class:`TrainConfig` (collection, optimisation, execution)
-``loss``   the algorithm's own: :class:`~terrashift_rl.training.algorithms.MAPOCAConfig`,
-           :class:`~terrashift_rl.training.algorithms.MAPPOConfig` or
-           :class:`~terrashift_rl.training.algorithms.IPPOConfig`, picked by the ``algo`` group
-``run``    :class:`RunConfig` (seed, length, checkpoints, evaluations)
-``logger`` :class:`LoggerConfig`
-========== ===================================================================================
+============== ===============================================================================
+group          settings
+============== ===============================================================================
+``env``        :class:`~terrashift_rl.sim.TerraShiftConfig` (the simulator's scene)
+``model``      :class:`~terrashift_rl.modules.TerraShiftModelConfig` (network sizes)
+``train``      :class:`TrainConfig` (collection, optimisation, execution)
+``loss``       the algorithm's own: :class:`~terrashift_rl.training.algorithms.MAPOCAConfig`,
+               :class:`~terrashift_rl.training.algorithms.MAPPOConfig` or
+               :class:`~terrashift_rl.training.algorithms.IPPOConfig`, picked by the ``algo``
+               group
+``run``        :class:`RunConfig` (seed, length, checkpoints, evaluations)
+``logger``     :class:`LoggerConfig`
+``curriculum`` :class:`~terrashift_rl.training.curriculum.CurriculumSettings` (stages from a
+               small scene to ``env``'s)
+============== ===============================================================================
 
 :class:`RecipeConfig` is the training recipes' whole config and :class:`EvaluateConfig` the
 evaluation recipe's; :meth:`RecipeConfig.of` and :meth:`EvaluateConfig.of` build them from the
@@ -51,6 +54,7 @@ from terrashift_rl.fields import (
 from terrashift_rl.modules import TerraShiftModelConfig
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training.algorithms import ALGORITHMS, LossConfig, MAPOCAConfig
+from terrashift_rl.training.curriculum import CurriculumSettings
 
 __all__ = [
     "EvaluateConfig",
@@ -275,7 +279,7 @@ class LoggerConfig:
 @dataclass
 class RecipeConfig:
     """The training recipes' whole config: the scene, the networks, training with its loss, the
-    run and the logger."""
+    run, the logger and the curriculum."""
 
     env: TerraShiftConfig = field(default_factory=TerraShiftConfig)
     """The scene the policy trains on."""
@@ -287,6 +291,8 @@ class RecipeConfig:
     """Seed, length, device, checkpoints and evaluations."""
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     """Where the metrics go."""
+    curriculum: CurriculumSettings = field(default_factory=CurriculumSettings)
+    """Whether and how the scene grows from a small one to ``env``'s during training."""
 
     @classmethod
     def of(cls, cfg: DictConfig) -> RecipeConfig:
@@ -365,7 +371,7 @@ def register_config_schemas() -> None:
     ``model/schema`` and ``model/schema_small``
     (:meth:`~terrashift_rl.modules.TerraShiftModelConfig.small`), ``train/schema``,
     ``algo/<algo>_schema`` (placed at ``loss``, with ``loss.algo``), ``logger/schema``,
-    ``run_schema`` (placed at ``run``) and ``evaluate_schema``."""
+    ``curriculum/schema``, ``run_schema`` (placed at ``run``) and ``evaluate_schema``."""
     store = ConfigStore.instance()
     store.store(group="env", name="schema", node=dataclasses.asdict(TerraShiftConfig()))
     store.store(group="model", name="schema", node=dataclasses.asdict(TerraShiftModelConfig()))
@@ -379,6 +385,7 @@ def register_config_schemas() -> None:
         node = {"algo": algo, **dataclasses.asdict(config())}
         store.store(group="algo", name=f"{algo}_schema", node=node, package="loss")
     store.store(group="logger", name="schema", node=dataclasses.asdict(LoggerConfig()))
+    store.store(group="curriculum", name="schema", node=dataclasses.asdict(CurriculumSettings()))
     store.store(name="run_schema", node=dataclasses.asdict(RunConfig()), package="run")
     evaluate = dataclasses.asdict(EvaluateConfig())
     del evaluate["env"]

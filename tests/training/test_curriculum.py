@@ -13,14 +13,13 @@ from terrashift_rl.envs.mixed import MixedSceneEnv
 from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
 from terrashift_rl.objectives import ValueNormalizer
 from terrashift_rl.sim import TerraShiftConfig
-from terrashift_rl.training.algorithms import ALGORITHMS
+from terrashift_rl.training.algorithms import MAPOCAConfig
 from terrashift_rl.training.curriculum import (
     Curriculum,
     CurriculumSettings,
     make_curriculum_env,
     stage_scenes,
 )
-from terrashift_rl.training.trainer import TrainConfig
 
 
 def sizes(scenes):
@@ -199,8 +198,16 @@ def test_a_resumed_curriculum_continues_at_the_same_stage():
             r"stage 1 of 3 \(4x4 columns, 8 agents, 4 spheres\) is no scene the simulator holds",
         ),
         ({"grid_size": 30}, {"stages": 1}, "curriculum.stages must be an integer >= 2, got 1"),
-        ({"grid_size": 30}, {"threshold": 0.0}, r"curriculum.threshold must be a number in \(0"),
-        ({"grid_size": 30}, {"mix": 1.0}, r"curriculum.mix must be a number in \[0, 1\), got 1.0"),
+        (
+            {"grid_size": 30},
+            {"threshold": 0.0},
+            r"curriculum.threshold must be a finite number in \(0, 1\]",
+        ),
+        (
+            {"grid_size": 30},
+            {"mix": 1.0},
+            r"curriculum.mix must be a finite number in \[0, 1\), got 1.0",
+        ),
         ({"grid_size": 30}, {"kind": "manual"}, "curriculum.kind must be one of"),
         ({"grid_size": 30}, {"eval_every": 0}, "curriculum.eval_every must be an integer >= 1"),
     ],
@@ -244,7 +251,7 @@ def test_ma_pocas_loss_on_a_padded_scene_equals_its_loss_on_the_scene_alone():
     large = tiny(grid_size=12, num_agents=3, num_objects=2, num_goals=2, spawn_margin=1)
     torch.manual_seed(0)
     networks = make_terrashift_networks(TerraShiftModelConfig.small()).eval()
-    algorithm = ALGORITHMS["mapoca"](networks, TrainConfig(num_envs=2, minibatches=1))
+    algorithm = MAPOCAConfig().make(networks, max_batch=2)
     losses = []
     for scenes, counts in (([small], [2]), ([small, large], [2, 1])):
         env = TransformedEnv(
