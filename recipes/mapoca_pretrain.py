@@ -76,6 +76,7 @@ def train(cfg: DictConfig, *, run_dir: Path) -> Path:
     configs = {
         "env_config": dataclasses.asdict(settings.env),
         "model_config": dataclasses.asdict(settings.model),
+        "curriculum_config": dataclasses.asdict(settings.curriculum),
     }
     resume = load_checkpoint(run.resume, required=RESUME_KEYS) if run.resume else None
     if resume is not None:

@@ -576,6 +576,7 @@ def configs_of(cfg) -> dict:
         "env_config": dataclasses.asdict(settings.env),
         "model_config": dataclasses.asdict(settings.model),
         "train_config": dataclasses.asdict(settings.train),
+        "curriculum_config": dataclasses.asdict(settings.curriculum),
         "algo": settings.train.algo,
     }
 
@@ -607,6 +608,15 @@ def test_resume_with_another_algorithm_names_it():
     saved = configs_of(compose_config("smoke", "algo=mappo"))
     with pytest.raises(ValueError, match="add algo=mappo to continue"):
         check_resumable(saved, configs, path="last.pt")
+
+
+def test_resume_with_another_curriculum_names_it():
+    configs = configs_of(compose_config("smoke"))
+    saved = configs_of(compose_config("smoke", "curriculum=auto", "curriculum.stages=4"))
+    with pytest.raises(ValueError, match="add curriculum.kind=auto curriculum.stages=4 to"):
+        check_resumable(saved, configs, path="last.pt")
+    earlier = {key: value for key, value in configs.items() if key != "curriculum_config"}
+    check_resumable(earlier, configs, path="last.pt")  # saved before the curriculum: none
 
 
 @pytest.mark.slow
