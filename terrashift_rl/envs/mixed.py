@@ -139,6 +139,11 @@ class MixedSceneEnv(EnvBase):
         return self._join(outputs)
 
     # --- training helpers -----------------------------------------------------------------
+    def check_actions(self) -> None:
+        """:meth:`TerraShiftEnv.check_actions` in every scene."""
+        for env in self.envs:
+            env.check_actions()
+
     def stagger_episodes(self) -> None:
         """:meth:`TerraShiftEnv.stagger_episodes` in every scene."""
         for env in self.envs:

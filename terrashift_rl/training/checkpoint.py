@@ -35,8 +35,7 @@ from tensordict import TensorDict, TensorDictBase
 
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training.algorithms import ALGORITHMS
-from terrashift_rl.training.curriculum import CurriculumSettings
-from terrashift_rl.training.settings import TrainConfig, override
+from terrashift_rl.training.settings import CurriculumSettings, TrainConfig, override
 
 if TYPE_CHECKING:
     from terrashift_rl.training.trainer import OnPolicyTrainer

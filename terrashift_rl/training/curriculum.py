@@ -32,68 +32,24 @@ run continues at the same stage.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Callable
 from typing import Any
 
 import torch
-from torchrl.envs import Compose, InitTracker, TransformedEnv
+from torchrl.envs import Compose, EnvBase, InitTracker, TransformedEnv
 
 from terrashift_rl.envs.mixed import MixedSceneEnv
-from terrashift_rl.fields import at_least, check_fields, interval, one_of, setting
 from terrashift_rl.modules import TerraShiftNetworks
 from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.training import distributed
+from terrashift_rl.training.evaluation import evaluate_periodically
+from terrashift_rl.training.settings import CurriculumSettings
+from terrashift_rl.training.trainer import OnPolicyTrainer, TrainerHook
 
-__all__ = [
-    "CURRICULUM_KINDS",
-    "Curriculum",
-    "CurriculumSettings",
-    "make_curriculum_env",
-    "stage_scenes",
-]
-
-CURRICULUM_KINDS = ("none", "auto")
-"""Values of :attr:`CurriculumSettings.kind`."""
+__all__ = ["Curriculum", "CurriculumHook", "make_curriculum_env", "stage_scenes"]
 
 _SIZES = ("grid_size", "num_agents", "num_objects")
 """The scene fields a curriculum grows."""
-
-
-@dataclass
-class CurriculumSettings:
-    """The ``curriculum`` group: whether and how the scene grows during training.
-
-    Example:
-        >>> CurriculumSettings(kind="auto", mix=1.0)
-        Traceback (most recent call last):
-        ...
-        ValueError: curriculum.mix must be a finite number in [0, 1), got 1.0
-    """
-
-    kind: str = setting("none", one_of(*CURRICULUM_KINDS))
-    """``none``: train on the ``env`` group's scene from the start; ``auto``: stages from the
-    start scene below to the ``env`` group's scene."""
-    stages: int = setting(3, at_least(2))
-    """Scenes from the start to the target, both included (3 from the pretraining scene to
-    ``env=large``: 15 x 15 / 8 agents / 4 spheres, 30 x 30 / 16 / 6, 45 x 45 / 24 / 8)."""
-    start_grid_size: int = setting(15, at_least(2))
-    """Columns per side of the first stage's grid."""
-    start_num_agents: int = setting(8, at_least(1))
-    """Wave agents of the first stage."""
-    start_num_objects: int = setting(4, at_least(1))
-    """Spheres of the first stage."""
-    threshold: float = setting(0.8, interval(0, 1, low_open=True))
-    """Goal fraction of an in-training evaluation at the current stage at which the next
-    stage starts."""
-    eval_every: int = setting(10, at_least(1))
-    """Iterations between the evaluations of the current stage that decide an advance
-    (evaluation mode, ``run.eval_episodes`` episodes of ``run.eval_seed``'s scenes); none once
-    the target is reached (``run.eval_every`` scores the target throughout)."""
-    mix: float = setting(0.25, interval(0, 1, high_open=True))
-    """Fraction of the training environments kept on earlier stages once there are any,
-    spread evenly over them."""
-
-    def __post_init__(self) -> None:
-        check_fields(self, "curriculum")
 
 
 def _sizes(scene: TerraShiftConfig) -> tuple[int, int, int]:
@@ -213,15 +169,14 @@ class Curriculum:
         """Whether the current stage is the target."""
         return self.stage == len(self.scenes) - 1
 
-    def describe(self, stage: int | None = None) -> str:
-        """``stage N/S: GxG columns, K agents, M spheres`` of ``stage`` (the current one if
-        None)."""
-        stage = self.stage if stage is None else stage
-        grid, agents, objects = _sizes(self.scenes[stage])
-        return (
-            f"stage {stage + 1}/{len(self.scenes)}: {grid}x{grid} columns, {agents} agents, "
-            f"{objects} spheres"
-        )
+    def describe(self, *, short: bool = False) -> str:
+        """``stage N/S: GxG columns, K agents, M spheres`` of the current stage; ``N/S`` if
+        ``short``."""
+        count = f"{self.stage + 1}/{len(self.scenes)}"
+        if short:
+            return count
+        grid, agents, objects = _sizes(self.scene)
+        return f"stage {count}: {grid}x{grid} columns, {agents} agents, {objects} spheres"
 
     def passes(self, goal_fraction: float) -> bool:
         """Whether an in-training evaluation's goal fraction at the current stage lets the run
@@ -315,3 +270,86 @@ def make_curriculum_env(
     )
     primer = networks.make_tensordict_primer(target.num_agents)
     return TransformedEnv(base, Compose(InitTracker(), primer))
+
+
+class CurriculumHook(TrainerHook):
+    """Runs a :class:`Curriculum` in an :class:`~terrashift_rl.training.trainer.OnPolicyTrainer`
+    on the environments of :func:`make_curriculum_env` (handed to
+    :func:`~terrashift_rl.training.terrashift.make_trainer` as its ``scene_state``).
+
+    Checkpoints hold the stage and the simulators of every scene in the mix, so a resumed run
+    continues at the same stage in the same episodes. :meth:`after_iteration`, called by every
+    process after each iteration, scores the current stage every ``eval_every`` iterations
+    until the target and advances every process together when it passes the threshold.
+
+    Args:
+        curriculum: the stages and the run's place in them.
+        env: the training environments (``make_curriculum_env(...).base_env``).
+        make_evaluation_env: builds the evaluation environments of a scene (evaluation mode
+            and its episodes and seed applied); None on a process that does not evaluate.
+        actor: the policy to score.
+
+    Keyword Args:
+        seed: the seed of this process's training environments.
+        eval_seed: the seed of every evaluation's scenes.
+    """
+
+    state_keys = ("curriculum", "simulator")
+
+    def __init__(
+        self,
+        curriculum: Curriculum,
+        env: MixedSceneEnv,
+        make_evaluation_env: Callable[[TerraShiftConfig], EnvBase] | None,
+        actor: Callable,
+        *,
+        seed: int,
+        eval_seed: int,
+    ) -> None:
+        self.curriculum = curriculum
+        self.env = env
+        self.make_evaluation_env = make_evaluation_env
+        self.actor = actor
+        self.seed = seed
+        self.eval_seed = eval_seed
+        self._evaluation: tuple[int, EnvBase] | None = None  # (stage, its environments)
+
+    def after_iteration(self, trainer: OnPolicyTrainer) -> dict[str, float]:
+        """Every ``eval_every`` iterations before the target: scores the current stage (on the
+        evaluating process) and, if that passes the threshold, starts the next stage on every
+        process at once (the environments take its mix and the trainer starts new episodes).
+        Returns the metrics to log: ``curriculum_stage`` (from 1, after any advance) and the
+        scores, ``curriculum_eval_goal_fraction``, ...."""
+        curriculum = self.curriculum
+        stage = {"curriculum_stage": float(curriculum.stage + 1)}
+        if curriculum.final or trainer.iteration % curriculum.settings.eval_every:
+            return stage
+        scores, passed = {}, False
+        if self.make_evaluation_env is not None:
+            scores = self._evaluate()
+            passed = curriculum.passes(scores["eval_goal_fraction"])
+        if distributed.any_process(passed):
+            curriculum.advance(env_steps=trainer.env_steps)
+            curriculum.seat(self.env, seed=self.seed)
+            trainer.restart_episodes()
+        return {
+            "curriculum_stage": float(curriculum.stage + 1),
+            **{f"curriculum_{name}": value for name, value in scores.items()},
+        }
+
+    def _evaluate(self) -> dict[str, float]:
+        stage = self.curriculum.stage
+        if self._evaluation is None or self._evaluation[0] != stage:
+            self._evaluation = (stage, self.make_evaluation_env(self.curriculum.scene))
+        return evaluate_periodically(self._evaluation[1], self.actor, seed=self.eval_seed)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "curriculum": self.curriculum.state_dict(),
+            "simulator": self.env.simulator_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.curriculum.load_state_dict(state["curriculum"])
+        self.curriculum.seat(self.env, seed=self.seed)
+        self.env.load_simulator_state(state["simulator"])

@@ -15,7 +15,7 @@ group          settings
                group
 ``run``        :class:`RunConfig` (seed, length, checkpoints, evaluations)
 ``logger``     :class:`LoggerConfig`
-``curriculum`` :class:`~terrashift_rl.training.curriculum.CurriculumSettings` (stages from a
+``curriculum`` :class:`CurriculumSettings` (stages from a
                small scene to ``env``'s)
 ============== ===============================================================================
 
@@ -48,15 +48,16 @@ from terrashift_rl.fields import (
     at_least,
     build,
     check_fields,
+    interval,
     one_of,
     setting,
 )
 from terrashift_rl.modules import TerraShiftModelConfig
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training.algorithms import ALGORITHMS, LossConfig, MAPOCAConfig
-from terrashift_rl.training.curriculum import CurriculumSettings
 
 __all__ = [
+    "CurriculumSettings",
     "EvaluateConfig",
     "LoggerConfig",
     "RecipeConfig",
@@ -274,6 +275,44 @@ class LoggerConfig:
     """With ``kind=wandb``: ``offline`` (no account, no network) or ``online`` (syncs)."""
     project: str = setting("terrashift_rl")
     """With ``kind=wandb``: the project's name."""
+
+
+@dataclass
+class CurriculumSettings:
+    """The ``curriculum`` group: whether and how the scene grows during training.
+
+    Example:
+        >>> CurriculumSettings(kind="auto", mix=1.0)
+        Traceback (most recent call last):
+        ...
+        ValueError: curriculum.mix must be a finite number in [0, 1), got 1.0
+    """
+
+    kind: str = setting("none", one_of("none", "auto"))
+    """``none``: train on the ``env`` group's scene from the start; ``auto``: stages from the
+    start scene below to the ``env`` group's scene."""
+    stages: int = setting(3, at_least(2))
+    """Scenes from the start to the target, both included (3 from the pretraining scene to
+    ``env=large``: 15 x 15 / 8 agents / 4 spheres, 30 x 30 / 16 / 6, 45 x 45 / 24 / 8)."""
+    start_grid_size: int = setting(15, at_least(2))
+    """Columns per side of the first stage's grid."""
+    start_num_agents: int = setting(8, at_least(1))
+    """Wave agents of the first stage."""
+    start_num_objects: int = setting(4, at_least(1))
+    """Spheres of the first stage."""
+    threshold: float = setting(0.8, interval(0, 1))
+    """Goal fraction of an in-training evaluation at the current stage at which the next
+    stage starts; 0 advances at every evaluation (``eval_every`` iterations per stage)."""
+    eval_every: int = setting(10, at_least(1))
+    """Iterations between the evaluations of the current stage that decide an advance
+    (evaluation mode, ``run.eval_episodes`` episodes of ``run.eval_seed``'s scenes); none once
+    the target is reached (``run.eval_every`` scores the target throughout)."""
+    mix: float = setting(0.25, interval(0, 1, high_open=True))
+    """Fraction of the training environments kept on earlier stages once there are any,
+    spread evenly over them."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, "curriculum")
 
 
 @dataclass

@@ -14,12 +14,8 @@ from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_network
 from terrashift_rl.objectives import ValueNormalizer
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training.algorithms import MAPOCAConfig
-from terrashift_rl.training.curriculum import (
-    Curriculum,
-    CurriculumSettings,
-    make_curriculum_env,
-    stage_scenes,
-)
+from terrashift_rl.training.curriculum import Curriculum, make_curriculum_env, stage_scenes
+from terrashift_rl.training.settings import CurriculumSettings
 
 
 def sizes(scenes):
