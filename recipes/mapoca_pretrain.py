@@ -4,13 +4,14 @@
     python recipes/mapoca_pretrain.py --config-name mapoca_paper       # the paper's Table 1
     python recipes/mapoca_pretrain.py train.num_envs=1024 run.minutes=10 logger=csv
     python recipes/mapoca_pretrain.py run.resume=<run dir>/checkpoints/last.pt
+    python recipes/mapoca_pretrain.py env=large curriculum=auto        # in stages from 15x15
     torchrun --standalone --nproc_per_node=4 recipes/mapoca_pretrain.py   # 4 GPUs, data-parallel
 
-Config: recipes/configs/mapoca_pretrain.yaml (groups env, model, train, algo, loss, logger; the
-settings room is :mod:`terrashift_rl.training.settings`). Without a CUDA device, run.device=auto
-sizes the run for the CPU (run.cpu_defaults) where the command line leaves a setting alone; a run
-from a checkpoint (run.resume, run.pretrained) builds its model. Outputs (checkpoints, logs,
-resolved config) go to Hydra's run directory.
+Config: recipes/configs/mapoca_pretrain.yaml (groups env, model, train, algo, loss, logger,
+curriculum; the settings room is :mod:`terrashift_rl.training.settings`). Without a CUDA device,
+run.device=auto sizes the run for the CPU (run.cpu_defaults) where the command line leaves a
+setting alone; a run from a checkpoint (run.resume, run.pretrained) builds its model. Outputs
+(checkpoints, logs, resolved config) go to Hydra's run directory.
 
 :func:`train` is the run: config, setup (environments, networks, trainer with its loss and
 optimiser, logger), the train loop, cleanup; :func:`launch` sizes the config for the machine
