@@ -62,6 +62,8 @@ def test_a_stage_advances_when_an_evaluation_reaches_the_threshold_and_not_befor
         curriculum.advance(env_steps=400)
     assert (curriculum.stage, curriculum.advances) == (2, [200, 300])
     assert curriculum.describe() == "stage 3/3: 45x45 columns, 24 agents, 8 spheres"
+    # threshold 0: every evaluation advances (eval_every iterations per stage)
+    assert Curriculum(curriculum.scene, CurriculumSettings(threshold=0.0)).passes(0.0)
 
 
 # --- mix -----------------------------------------------------------------------------------
@@ -196,8 +198,8 @@ def test_a_resumed_curriculum_continues_at_the_same_stage():
         ({"grid_size": 30}, {"stages": 1}, "curriculum.stages must be an integer >= 2, got 1"),
         (
             {"grid_size": 30},
-            {"threshold": 0.0},
-            r"curriculum.threshold must be a finite number in \(0, 1\]",
+            {"threshold": -0.1},
+            r"curriculum.threshold must be a finite number in \[0, 1\], got -0.1",
         ),
         (
             {"grid_size": 30},
