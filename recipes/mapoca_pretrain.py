@@ -4,13 +4,14 @@
     python recipes/mapoca_pretrain.py --config-name mapoca_paper       # the paper's Table 1
     python recipes/mapoca_pretrain.py train.num_envs=1024 run.minutes=10 logger=csv
     python recipes/mapoca_pretrain.py run.resume=<run dir>/checkpoints/last.pt
+    python recipes/mapoca_pretrain.py env=large curriculum=auto        # in stages from 15x15
     torchrun --standalone --nproc_per_node=4 recipes/mapoca_pretrain.py   # 4 GPUs, data-parallel
 
-Config: recipes/configs/mapoca_pretrain.yaml (groups env, model, train, algo, loss, logger; the
-settings room is :mod:`terrashift_rl.training.settings`). Without a CUDA device, run.device=auto
-sizes the run for the CPU (run.cpu_defaults) where the command line leaves a setting alone; a run
-from a checkpoint (run.resume, run.pretrained) builds its model. Outputs (checkpoints, logs,
-resolved config) go to Hydra's run directory.
+Config: recipes/configs/mapoca_pretrain.yaml (groups env, model, train, algo, loss, logger,
+curriculum; the settings room is :mod:`terrashift_rl.training.settings`). Without a CUDA device,
+run.device=auto sizes the run for the CPU (run.cpu_defaults) where the command line leaves a
+setting alone; a run from a checkpoint (run.resume, run.pretrained) builds its model. Outputs
+(checkpoints, logs, resolved config) go to Hydra's run directory.
 
 :func:`train` is the run: config, setup (environments, networks, trainer with its loss and
 optimiser, logger), the train loop, cleanup; :func:`launch` sizes the config for the machine
@@ -34,9 +35,11 @@ import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
+from torchrl.envs import TransformedEnv
 from tqdm import tqdm
 
 from terrashift_rl.modules import make_terrashift_networks
+from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training import distributed, make_trainer, make_training_env
 from terrashift_rl.training.checkpoint import (
     RESUME_KEYS,
@@ -52,6 +55,7 @@ from terrashift_rl.training.checkpoint import (
     weights_state,
     world_size_change,
 )
+from terrashift_rl.training.curriculum import Curriculum, CurriculumHook, make_curriculum_env
 from terrashift_rl.training.evaluation import evaluate_periodically, evaluation_scene
 from terrashift_rl.training.launch import (
     check_warp_cache,
@@ -79,7 +83,16 @@ def train(cfg: DictConfig, *, run_dir: Path) -> Path:
     configs = {
         "env_config": dataclasses.asdict(settings.env),
         "model_config": dataclasses.asdict(settings.model),
+        "curriculum_config": dataclasses.asdict(settings.curriculum),
     }
+    curriculum = None
+    if settings.curriculum.kind == "auto":  # stages from a small scene to env's
+        curriculum = Curriculum(settings.env, settings.curriculum)
+        curriculum.check_training(
+            algo=settings.train.algo,
+            teacher=settings.train.algo == "mapoca" and settings.train.loss.teacher_coeff > 0,
+            num_envs=settings.train.num_envs,
+        )
     resume = load_checkpoint(run.resume, required=RESUME_KEYS) if run.resume else None
     if resume is not None:
         train_config = dataclasses.asdict(settings.train)
@@ -117,20 +130,34 @@ def train(cfg: DictConfig, *, run_dir: Path) -> Path:
     eval_every = run.eval_every if main else None
     torch.manual_seed(seed)
     networks = make_terrashift_networks(settings.model).to(device)
-    env = make_training_env(
-        settings.env, networks, num_envs=settings.train.num_envs, device=device, seed=seed
-    )
-    trainer = make_trainer(env, networks, settings.train)
+
+    def evaluation_env(scene: TerraShiftConfig) -> TransformedEnv:
+        """Evaluation mode (no respawn, no shaping), the same scenes at every evaluation."""
+        return make_training_env(
+            evaluation_scene(scene),
+            networks,
+            num_envs=run.eval_episodes,
+            device=device,
+            seed=run.eval_seed,
+        )
+
+    num_envs, stages = settings.train.num_envs, None
+    if curriculum is None:
+        env = make_training_env(settings.env, networks, num_envs=num_envs, device=device, seed=seed)
+    else:  # the current stage's mix of scenes; the hook advances it and holds its state
+        env = make_curriculum_env(curriculum, networks, num_envs=num_envs, device=device, seed=seed)
+        stages = CurriculumHook(
+            curriculum,
+            env.base_env,
+            evaluation_env if main else None,
+            networks.actor,
+            seed=seed,
+            eval_seed=run.eval_seed,
+        )
+    trainer = make_trainer(env, networks, settings.train, scene_state=stages)
     if pretrained is not None:
         trainer.load_weights(pretrained)
-    # evaluation mode (no respawn, no shaping), the same scenes at every evaluation
-    eval_env = eval_every and make_training_env(
-        evaluation_scene(settings.env),
-        networks,
-        num_envs=run.eval_episodes,
-        device=device,
-        seed=run.eval_seed,
-    )
+    eval_env = eval_every and evaluation_env(settings.env)  # the target's, with a curriculum
     run_id, best = None, {"reward": -math.inf, "recent": []}
     if resume is not None:
         trainer.load_state_dict(resume)
@@ -176,10 +203,20 @@ def train(cfg: DictConfig, *, run_dir: Path) -> Path:
                 trainer, total_env_steps=run.total_env_steps, deadline=deadline
             ):
                 progress.update(trainer.env_steps - progress.n)
+                if stages is not None:
+                    stage = curriculum.stage
+                    metrics.update(stages.after_iteration(trainer))
+                    if main and curriculum.stage != stage:
+                        progress.write(
+                            f"{curriculum.describe()} from {trainer.env_steps:,} env-steps (a "
+                            f"goal fraction of {metrics['curriculum_eval_goal_fraction']:.3f} "
+                            f"at stage {stage + 1})"
+                        )
                 if eval_env and trainer.iteration % eval_every == 0:
                     metrics.update(evaluate_now())
                     goal_fraction = f"{metrics['eval_goal_fraction']:.3f}"
                 progress.set_postfix(
+                    **({} if curriculum is None else {"stage": curriculum.describe(short=True)}),
                     eval_goals=goal_fraction,
                     reward=f"{metrics['reward_per_decision']:+.4f}",
                     steps_per_s=f"{metrics['env_steps_per_s']:,.0f}",

@@ -96,49 +96,11 @@ class TerraShiftEnv(EnvBase):
         # steps whose action held NaN or infinity, and steps taken, since the last check
         self._non_finite_steps = torch.zeros((), dtype=torch.int64, device=self.device)
         self._steps_since_check = 0
-        self._make_specs()
-
-    # --- specs ----------------------------------------------------------------------------
-    def _make_specs(self) -> None:
-        cfg, dev = self.config, self.device
-        n, k, m, r = self.num_envs, cfg.num_agents, cfg.num_objects, cfg.heightmap_resolution
-
-        def flag(*shape):
-            return Categorical(2, shape=torch.Size(shape), dtype=torch.bool, device=dev)
-
-        def unit_box(*shape):
-            return Bounded(-1.0, 1.0, shape=torch.Size(shape), dtype=torch.float32, device=dev)
-
-        self.observation_spec = Composite(
-            {
-                GROUP: Composite(
-                    observation=unit_box(n, k, AGENT_FEATURES), mask=flag(n, k), shape=(n, k)
-                ),
-                "heightmap": unit_box(n, 1, r, r),
-                "objects": unit_box(n, m, OBJECT_FEATURES),
-                "objects_mask": flag(n, m),
-                **{
-                    key: Unbounded(shape=(n, 1), dtype=torch.int64, device=dev)
-                    for key in EVENT_KEYS
-                },
-                "episode_surface_work": Unbounded(shape=(n, 1), device=dev),
-            },
-            shape=(n,),
-        )
-        self.action_spec = Composite(
-            {GROUP: Composite(action=unit_box(n, k, ACTION_DIM), shape=(n, k))}, shape=(n,)
-        )
-        self.reward_spec = Composite(
-            {GROUP: Composite(reward=Unbounded(shape=(n, k, 1), device=dev), shape=(n, k))},
-            shape=(n,),
-        )
-        flags = ("done", "terminated", "truncated")
-        self.done_spec = Composite(
-            {
-                **{key: flag(n, 1) for key in flags},
-                GROUP: Composite({key: flag(n, k, 1) for key in flags}, shape=(n, k)),
-            },
-            shape=(n,),
+        set_specs(
+            self,
+            num_agents=config.num_agents,
+            num_objects=config.num_objects,
+            heightmap_resolution=config.heightmap_resolution,
         )
 
     # --- EnvBase API ----------------------------------------------------------------------
@@ -247,3 +209,48 @@ class TerraShiftEnv(EnvBase):
         # counted with config.count_surface_work, else 0
         out["episode_surface_work"] = sim.view("surface_work").sum(-1, keepdim=True)
         return TensorDict(out, batch_size=(n,), device=self.device)
+
+
+def set_specs(
+    env: EnvBase, *, num_agents: int, num_objects: int, heightmap_resolution: int
+) -> None:
+    """Gives ``env`` (batch ``[N]``) the specs of the table in :class:`TerraShiftEnv`'s
+    docstring for ``num_agents`` agents, ``num_objects`` object slots and a heightmap of
+    ``heightmap_resolution`` rays per side."""
+    dev, n = env.device, env.batch_size[0]
+    k, m, r = num_agents, num_objects, heightmap_resolution
+
+    def flag(*shape):
+        return Categorical(2, shape=torch.Size(shape), dtype=torch.bool, device=dev)
+
+    def unit_box(*shape):
+        return Bounded(-1.0, 1.0, shape=torch.Size(shape), dtype=torch.float32, device=dev)
+
+    env.observation_spec = Composite(
+        {
+            GROUP: Composite(
+                observation=unit_box(n, k, AGENT_FEATURES), mask=flag(n, k), shape=(n, k)
+            ),
+            "heightmap": unit_box(n, 1, r, r),
+            "objects": unit_box(n, m, OBJECT_FEATURES),
+            "objects_mask": flag(n, m),
+            **{key: Unbounded(shape=(n, 1), dtype=torch.int64, device=dev) for key in EVENT_KEYS},
+            "episode_surface_work": Unbounded(shape=(n, 1), device=dev),
+        },
+        shape=(n,),
+    )
+    env.action_spec = Composite(
+        {GROUP: Composite(action=unit_box(n, k, ACTION_DIM), shape=(n, k))}, shape=(n,)
+    )
+    env.reward_spec = Composite(
+        {GROUP: Composite(reward=Unbounded(shape=(n, k, 1), device=dev), shape=(n, k))},
+        shape=(n,),
+    )
+    flags = ("done", "terminated", "truncated")
+    env.done_spec = Composite(
+        {
+            **{key: flag(n, 1) for key in flags},
+            GROUP: Composite({key: flag(n, k, 1) for key in flags}, shape=(n, k)),
+        },
+        shape=(n,),
+    )

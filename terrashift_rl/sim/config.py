@@ -3,7 +3,8 @@
 Every length is in metres, every time in seconds, every mass in kilograms. Wave-agent
 quantities live in *cell units* (one cell is the spacing of the column grid), as the wave is
 defined on the grid. The defaults are the paper's pretraining run (``pretrain``); ``finetune``
-is the 30 x 30 grid with 16 agents.
+is the 30 x 30 grid with 16 agents; ``large`` is a 45 x 45 grid with 24 agents, 8 spheres and
+8 goals on the same platform.
 """
 
 from __future__ import annotations
@@ -280,10 +281,18 @@ class TerraShiftConfig:
     # --- presets --------------------------------------------------------------------------
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> TerraShiftConfig:
-        """Returns a named preset (``pretrain`` or ``finetune``) with ``overrides`` applied."""
+        """Returns a named preset (``pretrain``, ``finetune`` or ``large``) with ``overrides``
+        applied."""
         presets = {
             "pretrain": {},
             "finetune": {"grid_size": 30, "num_agents": 16, "num_objects": 4, "time_penalty": 0.0},
+            "large": {
+                "grid_size": 45,
+                "num_agents": 24,
+                "num_objects": 8,
+                "num_goals": 8,
+                "time_penalty": 0.0,
+            },
         }
         if name not in presets:
             raise ValueError(f"unknown preset {name!r}; choose one of {sorted(presets)}")

@@ -38,6 +38,7 @@ from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_network
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training.algorithms import ALGORITHMS
 from terrashift_rl.training.settings import (
+    CurriculumSettings,
     TrainConfig,
     check_loss_range,
     check_network_size,
@@ -456,8 +457,10 @@ def check_action_mode(checkpoint: dict, scene: TerraShiftConfig, key: str) -> No
 
 def check_resumable(resume: dict, configs: dict, *, path: str | Path) -> None:
     """Raises unless the checkpoint ``resume`` (at ``path``) was trained with ``configs``
-    (``env_config``, ``model_config``, ``train_config``: env, model, train and loss settings,
-    execution and initialisation settings aside), naming the overrides that would continue it."""
+    (``env_config``, ``model_config``, ``train_config``, ``curriculum_config``: env, model,
+    train, loss and curriculum settings, execution and initialisation settings aside), naming
+    the overrides that would continue it. A checkpoint from before the curriculum was trained
+    without one."""
     differ = []
     train, saved_train = dict(configs["train_config"]), dict(resume["train_config"])
     loss, saved_loss = train.pop("loss"), saved_train.pop("loss")
@@ -469,6 +472,11 @@ def check_resumable(resume: dict, configs: dict, *, path: str | Path) -> None:
         ("model", network_settings(configs["model_config"]), resume["model_config"]),
         ("train", train, saved_train),
         ("loss", loss, saved_loss),
+        (
+            "curriculum",
+            configs["curriculum_config"],
+            resume.get("curriculum_config", dataclasses.asdict(CurriculumSettings())),
+        ),
     ):
         for key, value in now.items():
             if saved.get(key) != value and key not in EXECUTION_SETTINGS:

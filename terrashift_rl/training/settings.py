@@ -3,18 +3,21 @@
 Each config group of ``recipes/configs`` is a dataclass whose fields carry their type, default,
 allowed range (:func:`~terrashift_rl.fields.setting`) and a docstring:
 
-========== ===================================================================================
-group      settings
-========== ===================================================================================
-``env``    :class:`~terrashift_rl.sim.TerraShiftConfig` (the simulator's scene)
-``model``  :class:`~terrashift_rl.modules.TerraShiftModelConfig` (network sizes)
-``train``  :class:`TrainConfig` (collection, optimisation, execution)
-``loss``   the algorithm's own: :class:`~terrashift_rl.training.algorithms.MAPOCAConfig`,
-           :class:`~terrashift_rl.training.algorithms.MAPPOConfig` or
-           :class:`~terrashift_rl.training.algorithms.IPPOConfig`, picked by the ``algo`` group
-``run``    :class:`RunConfig` (seed, length, checkpoints, evaluations)
-``logger`` :class:`LoggerConfig`
-========== ===================================================================================
+============== ===============================================================================
+group          settings
+============== ===============================================================================
+``env``        :class:`~terrashift_rl.sim.TerraShiftConfig` (the simulator's scene)
+``model``      :class:`~terrashift_rl.modules.TerraShiftModelConfig` (network sizes)
+``train``      :class:`TrainConfig` (collection, optimisation, execution)
+``loss``       the algorithm's own: :class:`~terrashift_rl.training.algorithms.MAPOCAConfig`,
+               :class:`~terrashift_rl.training.algorithms.MAPPOConfig` or
+               :class:`~terrashift_rl.training.algorithms.IPPOConfig`, picked by the ``algo``
+               group
+``run``        :class:`RunConfig` (seed, length, checkpoints, evaluations)
+``logger``     :class:`LoggerConfig`
+``curriculum`` :class:`CurriculumSettings` (stages from a
+               small scene to ``env``'s)
+============== ===============================================================================
 
 :class:`RecipeConfig` is the training recipes' whole config and :class:`EvaluateConfig` the
 evaluation recipe's; :meth:`RecipeConfig.of` and :meth:`EvaluateConfig.of` build them from the
@@ -49,6 +52,7 @@ from terrashift_rl.fields import (
     at_least,
     build,
     check_fields,
+    interval,
     one_of,
     setting,
 )
@@ -57,6 +61,7 @@ from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training.algorithms import ALGORITHMS, LossConfig, MAPOCAConfig
 
 __all__ = [
+    "CurriculumSettings",
     "EvaluateConfig",
     "LoggerConfig",
     "RecipeConfig",
@@ -294,9 +299,47 @@ class LoggerConfig:
 
 
 @dataclass
+class CurriculumSettings:
+    """The ``curriculum`` group: whether and how the scene grows during training.
+
+    Example:
+        >>> CurriculumSettings(kind="auto", mix=1.0)
+        Traceback (most recent call last):
+        ...
+        ValueError: curriculum.mix must be a finite number in [0, 1), got 1.0
+    """
+
+    kind: str = setting("none", one_of("none", "auto"))
+    """``none``: train on the ``env`` group's scene from the start; ``auto``: stages from the
+    start scene below to the ``env`` group's scene."""
+    stages: int = setting(3, at_least(2))
+    """Scenes from the start to the target, both included (3 from the pretraining scene to
+    ``env=large``: 15 x 15 / 8 agents / 4 spheres, 30 x 30 / 16 / 6, 45 x 45 / 24 / 8)."""
+    start_grid_size: int = setting(15, at_least(2))
+    """Columns per side of the first stage's grid."""
+    start_num_agents: int = setting(8, at_least(1))
+    """Wave agents of the first stage."""
+    start_num_objects: int = setting(4, at_least(1))
+    """Spheres of the first stage."""
+    threshold: float = setting(0.8, interval(0, 1))
+    """Goal fraction of an in-training evaluation at the current stage at which the next
+    stage starts; 0 advances at every evaluation (``eval_every`` iterations per stage)."""
+    eval_every: int = setting(10, at_least(1))
+    """Iterations between the evaluations of the current stage that decide an advance
+    (evaluation mode, ``run.eval_episodes`` episodes of ``run.eval_seed``'s scenes); none once
+    the target is reached (``run.eval_every`` scores the target throughout)."""
+    mix: float = setting(0.25, interval(0, 1, high_open=True))
+    """Fraction of the training environments kept on earlier stages once there are any,
+    spread evenly over them."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, "curriculum")
+
+
+@dataclass
 class RecipeConfig:
     """The training recipes' whole config: the scene, the networks, training with its loss, the
-    run and the logger."""
+    run, the logger and the curriculum."""
 
     env: TerraShiftConfig = field(default_factory=TerraShiftConfig)
     """The scene the policy trains on."""
@@ -308,6 +351,8 @@ class RecipeConfig:
     """Seed, length, device, checkpoints and evaluations."""
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     """Where the metrics go."""
+    curriculum: CurriculumSettings = field(default_factory=CurriculumSettings)
+    """Whether and how the scene grows from a small one to ``env``'s during training."""
 
     @classmethod
     def of(cls, cfg: DictConfig) -> RecipeConfig:
@@ -485,7 +530,7 @@ def register_config_schemas() -> None:
     ``model/schema`` and ``model/schema_small``
     (:meth:`~terrashift_rl.modules.TerraShiftModelConfig.small`), ``train/schema``,
     ``algo/<algo>_schema`` (placed at ``loss``, with ``loss.algo``), ``logger/schema``,
-    ``run_schema`` (placed at ``run``) and ``evaluate_schema``."""
+    ``curriculum/schema``, ``run_schema`` (placed at ``run``) and ``evaluate_schema``."""
     store = ConfigStore.instance()
     store.store(group="env", name="schema", node=dataclasses.asdict(TerraShiftConfig()))
     store.store(group="model", name="schema", node=dataclasses.asdict(TerraShiftModelConfig()))
@@ -499,6 +544,7 @@ def register_config_schemas() -> None:
         node = {"algo": algo, **dataclasses.asdict(config())}
         store.store(group="algo", name=f"{algo}_schema", node=node, package="loss")
     store.store(group="logger", name="schema", node=dataclasses.asdict(LoggerConfig()))
+    store.store(group="curriculum", name="schema", node=dataclasses.asdict(CurriculumSettings()))
     store.store(name="run_schema", node=dataclasses.asdict(RunConfig()), package="run")
     evaluate = dataclasses.asdict(EvaluateConfig())
     del evaluate["env"]

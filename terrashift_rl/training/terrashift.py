@@ -72,12 +72,18 @@ def make_training_env(
 
 
 def make_trainer(
-    env: TransformedEnv, networks: TerraShiftNetworks, config: TrainConfig
+    env: TransformedEnv,
+    networks: TerraShiftNetworks,
+    config: TrainConfig,
+    *,
+    scene_state: TrainerHook | None = None,
 ) -> OnPolicyTrainer:
     """The trainer of ``networks`` on ``env`` (from :func:`make_training_env`) with the
     algorithm ``config.loss`` builds, AdamW over the trunk and policy head (at
     ``lr_trunk_policy``) and the algorithm's critics (at ``lr_value_baseline``), and
-    :func:`terrashift_hooks`."""
+    :func:`terrashift_hooks`; ``scene_state`` holds the environments' state in checkpoints
+    (:class:`SimulatorState` if None; a curriculum's
+    :class:`~terrashift_rl.training.curriculum.CurriculumHook`)."""
     config.validate()
     # the estimation pass runs no bigger pieces than a training mini-batch: same memory bound
     max_batch = math.ceil(config.num_envs / config.minibatches)
@@ -102,15 +108,20 @@ def make_trainer(
         optimizer,
         config,
         networks=networks,
-        hooks=terrashift_hooks(env.base_env, algorithm, config),
+        hooks=terrashift_hooks(env.base_env, algorithm, config, scene_state=scene_state),
         policy_outputs=[key for key in networks.actor.out_keys if key not in _RECOMPUTED_KEYS],
     )
 
 
 def terrashift_hooks(
-    env: TerraShiftEnv, algorithm: Algorithm, config: TrainConfig
+    env: TerraShiftEnv,
+    algorithm: Algorithm,
+    config: TrainConfig,
+    *,
+    scene_state: TrainerHook | None = None,
 ) -> list[TrainerHook]:
-    """The hooks a TerraShift trainer runs with ``config``, in the order they are called."""
+    """The hooks a TerraShift trainer runs with ``config``, in the order they are called;
+    ``scene_state`` (:class:`SimulatorState` if None) holds the environments' state."""
     hooks: list[TrainerHook] = [ActionCheck(env)]  # before anything reads the batch
     if config.stagger_episodes:
         hooks.append(StaggeredEpisodes(env))
@@ -120,7 +131,7 @@ def terrashift_hooks(
             loss.teacher_coeff, loss.teacher_coeff_end, loss.teacher_iterations
         )
         hooks.append(ScriptedTeacher(env.config, algorithm.loss, schedule))
-    return [*hooks, SimulatorState(env), SceneMetrics()]
+    return [*hooks, scene_state or SimulatorState(env), SceneMetrics()]
 
 
 class StaggeredEpisodes(TrainerHook):

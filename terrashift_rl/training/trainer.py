@@ -237,6 +237,11 @@ class OnPolicyTrainer:
             hook.on_batch_collected(self, data)
         return data
 
+    def restart_episodes(self) -> None:
+        """Starts the next collection from a reset of every environment (after the
+        environments changed, a curriculum's next stage), as the run's first one does."""
+        self._carry = None
+
     def _act(self, tensordict: TensorDictBase) -> TensorDictBase:
         return self.policy(tensordict).select(*self._actor_outputs)
 

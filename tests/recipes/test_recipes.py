@@ -209,6 +209,62 @@ def run(
     )
 
 
+CURRICULUM = (
+    "curriculum=auto",
+    "curriculum.start_grid_size=6",
+    "curriculum.start_num_agents=2",
+    "curriculum.start_num_objects=1",
+    "curriculum.threshold=0",  # advance at every evaluation of the stage
+)
+
+
+def test_a_curriculum_run_advances_a_stage_and_checkpoints_it(tmp_path):
+    result = run(
+        "mapoca_pretrain.py",
+        *CURRICULUM,
+        "curriculum.stages=2",
+        "curriculum.eval_every=1",
+        "run.total_env_steps=64",
+        "hydra.run.dir=a",
+        cwd=tmp_path,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "stage 2/2: 8x8 columns, 4 agents, 2 spheres from 32 env-steps" in result.stdout
+    saved = load_checkpoint(tmp_path / "a/checkpoints/last.pt")
+    assert saved["curriculum"] == {"stage": 1, "advances": [32], "scenes": [[6, 2, 1], [8, 4, 2]]}
+    assert saved["curriculum_config"]["kind"] == "auto"
+
+
+@pytest.mark.slow
+def test_a_curriculum_run_killed_mid_stage_resumes_exactly(tmp_path):
+    stages = (*CURRICULUM, "curriculum.stages=3", "curriculum.eval_every=2")
+    straight = run(
+        "mapoca_pretrain.py", *stages, "run.total_env_steps=160", "hydra.run.dir=a", cwd=tmp_path
+    )
+    assert straight.returncode == 0, straight.stderr
+    first = run(
+        "mapoca_pretrain.py", *stages, "run.total_env_steps=96", "hydra.run.dir=b", cwd=tmp_path
+    )
+    assert first.returncode == 0, first.stderr
+    killed = load_checkpoint(tmp_path / "b/checkpoints/last.pt")
+    assert killed["curriculum"]["stage"] == 1 and killed["carry"] is not None  # mid-stage
+    resumed = run(
+        "mapoca_pretrain.py",
+        *stages,
+        "run.total_env_steps=160",
+        "run.resume=b/checkpoints/last.pt",
+        "hydra.run.dir=c",
+        cwd=tmp_path,
+    )
+    assert resumed.returncode == 0, resumed.stderr
+    a = load_checkpoint(tmp_path / "a/checkpoints/last.pt")
+    c = load_checkpoint(tmp_path / "c/checkpoints/last.pt")
+    assert a["curriculum"] == c["curriculum"]
+    assert a["curriculum"]["advances"] == [64, 128]
+    for name, value in a["networks"].items():
+        torch.testing.assert_close(c["networks"][name], value, atol=0, rtol=0)
+
+
 @pytest.mark.slow
 def test_smoke_train_resume_and_finetune(tmp_path):
     straight = run("mapoca_pretrain.py", "run.total_env_steps=96", "hydra.run.dir=a", cwd=tmp_path)
@@ -576,6 +632,7 @@ def configs_of(cfg) -> dict:
         "env_config": dataclasses.asdict(settings.env),
         "model_config": dataclasses.asdict(settings.model),
         "train_config": dataclasses.asdict(settings.train),
+        "curriculum_config": dataclasses.asdict(settings.curriculum),
         "algo": settings.train.algo,
     }
 
@@ -607,6 +664,15 @@ def test_resume_with_another_algorithm_names_it():
     saved = configs_of(compose_config("smoke", "algo=mappo"))
     with pytest.raises(ValueError, match="add algo=mappo to continue"):
         check_resumable(saved, configs, path="last.pt")
+
+
+def test_resume_with_another_curriculum_names_it():
+    configs = configs_of(compose_config("smoke"))
+    saved = configs_of(compose_config("smoke", "curriculum=auto", "curriculum.stages=4"))
+    with pytest.raises(ValueError, match="add curriculum.kind=auto curriculum.stages=4 to"):
+        check_resumable(saved, configs, path="last.pt")
+    earlier = {key: value for key, value in configs.items() if key != "curriculum_config"}
+    check_resumable(earlier, configs, path="last.pt")  # saved before the curriculum: none
 
 
 @pytest.mark.slow

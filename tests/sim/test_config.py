@@ -78,3 +78,11 @@ def test_usable_as_hydra_structured_config():
     config = TerraShiftConfig(**OmegaConf.to_container(merged))
     assert config.grid_size == 20 and config.column_shape == "box"
     assert {f.name for f in dataclasses.fields(config)} == set(schema.keys())
+
+
+def test_the_large_preset_holds_eight_spheres_and_goals_on_45_columns():
+    large = TerraShiftConfig.preset("large")
+    assert (large.grid_size, large.num_agents, large.num_objects, large.num_goals) == (45, 24, 8, 8)
+    assert large.platform_size == TerraShiftConfig().platform_size
+    with pytest.raises(ValueError, match="exceeds the .* spawn places"):
+        large.replace(num_objects=20, num_goals=20)

@@ -396,3 +396,22 @@ def test_partial_reset_refreshes_only_the_reset_envs():
         assert_observation_matches_state(sim, env)
     for env in (0, 2):
         assert sim.view("object_mask")[env, 0] and not sim.view("object_mask")[env, 1:].any()
+
+
+# --- scene sizes --------------------------------------------------------------------------
+
+
+def test_the_large_scene_observes_eight_spheres_and_every_agent():
+    """45 x 45 columns, 24 agents, 8 spheres and goals: every one of the 8 object slots comes
+    into play and every observation still equals the reference."""
+    sim = Simulator(TerraShiftConfig.preset("large"), num_envs=2, seed=SEED)
+    sim.reset()
+    seen = torch.zeros(2, 8, dtype=torch.bool)
+    for _ in range(60):  # the spawns are staggered by respawn_delay: 8 x 0.2 s < 60 decisions
+        sim.step(torch.zeros(2, 24, 6))
+        seen |= sim.view("object_mask")
+    assert sim.view("object_features").shape == (2, 8, 9)
+    assert sim.view("agent_features").shape == (2, 24, 9)
+    assert seen.all()
+    for env in range(sim.num_envs):
+        assert_observation_matches_state(sim, env)

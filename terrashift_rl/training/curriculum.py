@@ -1,0 +1,355 @@
+"""An automatic curriculum over the scene's size: grid, agents and spheres, small to large.
+
+Larger grids, more agents and more spheres each make learning from scratch brittle (TerraShift
+paper, Section 5.2.2), while a policy that learnt a small scene transfers to a larger one. A
+:class:`Curriculum` trains on a sequence of scenes from a start scene (the pretraining scene,
+15 x 15 columns, 8 agents, 4 spheres, by default) to the run's target scene:
+
+- **Stages**: ``stages`` scenes, the start and the target included. Each of grid size, agents
+  and spheres is interpolated linearly between the start's and the target's and rounded half
+  up; goals are the target's, at most one per sphere; every other field is the target's.
+  Consecutive stages that come out equal are merged. A stage the simulator cannot hold (more
+  spheres and goals than its spawn places) is refused at start-up, naming the settings.
+- **Advance**: every ``eval_every`` iterations an evaluation (evaluation mode) scores the
+  current stage's scene; when its goal fraction reaches ``threshold``, the next stage starts.
+  The last stage is kept.
+- **Mix**: from the second stage on, a fraction ``mix`` of the training environments stays on
+  the earlier stages, spread evenly over them (the earliest first where they do not divide),
+  so that what was learnt there is kept. One simulator holds one grid size, so each stage in
+  the mix has its own batch of environments; :class:`~terrashift_rl.envs.mixed.MixedSceneEnv`
+  steps them as one batch padded to the target's agents and spheres, which the networks
+  (attention over agents and objects) and MA-POCA's loss (absent agents masked out) take as
+  they are. The padding is the target's from the first stage on, so the batch keeps its shapes
+  through every advance (the policy's captured graphs, the transforms and the checkpoints'
+  carried tensordict stay valid); the price is the networks' work on absent agents in the
+  early stages (a 15 x 15 stage with 8 agents padded to 24 costs the agent-wise layers three
+  times its own).
+
+:meth:`Curriculum.state_dict` holds the stage and the env-steps of each advance, so a resumed
+run continues at the same stage.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import torch
+from torchrl.envs import Compose, EnvBase, InitTracker, TransformedEnv
+
+from terrashift_rl.envs.mixed import MixedSceneEnv
+from terrashift_rl.modules import TerraShiftNetworks
+from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.training import distributed
+from terrashift_rl.training.evaluation import evaluate_periodically
+from terrashift_rl.training.settings import CurriculumSettings
+from terrashift_rl.training.trainer import OnPolicyTrainer, TrainerHook
+
+__all__ = ["Curriculum", "CurriculumHook", "make_curriculum_env", "stage_scenes"]
+
+_SIZES = ("grid_size", "num_agents", "num_objects")
+"""The scene fields a curriculum grows."""
+
+
+def _sizes(scene: TerraShiftConfig) -> tuple[int, int, int]:
+    return tuple(getattr(scene, name) for name in _SIZES)
+
+
+def stage_scenes(target: TerraShiftConfig, settings: CurriculumSettings) -> list[TerraShiftConfig]:
+    """The curriculum's scenes from the start to ``target`` (the module's rule).
+
+    Raises:
+        ValueError: naming the setting, if the target is smaller than the start in grid size,
+            agents or spheres, equals the start, or a stage is a scene the simulator cannot
+            hold.
+
+    Example:
+        >>> scenes = stage_scenes(TerraShiftConfig.preset("large"), CurriculumSettings(stages=3))
+        >>> [(s.grid_size, s.num_agents, s.num_objects, s.num_goals) for s in scenes]
+        [(15, 8, 4, 4), (30, 16, 6, 6), (45, 24, 8, 8)]
+    """
+    start = tuple(getattr(settings, f"start_{name}") for name in _SIZES)
+    end = _sizes(target)
+    for name, first, last in zip(_SIZES, start, end, strict=True):
+        if last < first:
+            raise ValueError(
+                f"env.{name} ({last}) is smaller than curriculum.start_{name} ({first}): a "
+                f"curriculum only grows the scene; lower curriculum.start_{name} or use "
+                "curriculum=none"
+            )
+    if start == end:
+        raise ValueError(
+            f"curriculum.start_grid_size, start_num_agents and start_num_objects {start} equal "
+            "the env group's grid_size, num_agents and num_objects: there is nothing to grow; "
+            "use curriculum=none"
+        )
+    scenes: list[TerraShiftConfig] = []
+    for stage in range(settings.stages):
+        t = stage / (settings.stages - 1)
+        grid, agents, objects = (
+            math.floor(first + t * (last - first) + 0.5)
+            for first, last in zip(start, end, strict=True)
+        )
+        try:
+            scene = target.replace(
+                grid_size=grid,
+                num_agents=agents,
+                num_objects=objects,
+                num_goals=min(target.num_goals, objects),
+            )
+        except ValueError as error:
+            raise ValueError(
+                f"curriculum stage {stage + 1} of {settings.stages} ({grid}x{grid} columns, "
+                f"{agents} agents, {objects} spheres) is no scene the simulator holds: {error}; "
+                "change curriculum.start_grid_size, curriculum.start_num_objects or "
+                "curriculum.stages"
+            ) from None
+        if not scenes or _sizes(scene) != _sizes(scenes[-1]):
+            scenes.append(scene)
+    return scenes
+
+
+class Curriculum:
+    """Which stage a run is at, when it advances, and how its environments are shared out.
+
+    Args:
+        target: the run's scene (the ``env`` group's), the last stage.
+        settings: the ``curriculum`` group's settings; ``kind`` is not read.
+
+    Example:
+        >>> curriculum = Curriculum(TerraShiftConfig.preset("finetune"), CurriculumSettings())
+        >>> curriculum.describe()
+        'stage 1/3: 15x15 columns, 8 agents, 4 spheres'
+        >>> curriculum.passes(0.85)
+        True
+        >>> curriculum.advance(env_steps=1000)
+        >>> curriculum.describe(), curriculum.allocation(num_envs=16)
+        ('stage 2/3: 23x23 columns, 12 agents, 4 spheres', [(0, 4), (1, 12)])
+    """
+
+    def __init__(self, target: TerraShiftConfig, settings: CurriculumSettings) -> None:
+        self.settings = settings
+        self.scenes = stage_scenes(target, settings)
+        self.stage = 0
+        self.advances: list[int] = []
+        """Env-steps at which each stage after the first started."""
+
+    def check_training(self, *, algo: str, teacher: bool, num_envs: int) -> None:
+        """Raises ``ValueError`` naming the setting that this curriculum cannot train with:
+        an algorithm other than MA-POCA (the padding's absent agents would enter its loss), the
+        scripted teacher (it plays one scene) or too few environments for the mix.
+
+        Example:
+            >>> curriculum = Curriculum(TerraShiftConfig.preset("large"), CurriculumSettings())
+            >>> curriculum.check_training(algo="mappo", teacher=False, num_envs=64)
+            Traceback (most recent call last):
+            ...
+            ValueError: curriculum=auto pads the early stages with absent agents, which only ...
+        """
+        if algo != "mapoca":
+            raise ValueError(
+                "curriculum=auto pads the early stages with absent agents, which only "
+                f"train.algo=mapoca's loss leaves out; got train.algo={algo}"
+            )
+        if teacher:
+            raise ValueError(
+                "curriculum=auto trains on several scenes at once and the scripted teacher plays "
+                "one; set loss.teacher_coeff=0"
+            )
+        self.allocation(num_envs, stage=len(self.scenes) - 1)
+
+    @property
+    def scene(self) -> TerraShiftConfig:
+        """The current stage's scene."""
+        return self.scenes[self.stage]
+
+    @property
+    def final(self) -> bool:
+        """Whether the current stage is the target."""
+        return self.stage == len(self.scenes) - 1
+
+    def describe(self, *, short: bool = False) -> str:
+        """``stage N/S: GxG columns, K agents, M spheres`` of the current stage; ``N/S`` if
+        ``short``."""
+        count = f"{self.stage + 1}/{len(self.scenes)}"
+        if short:
+            return count
+        grid, agents, objects = _sizes(self.scene)
+        return f"stage {count}: {grid}x{grid} columns, {agents} agents, {objects} spheres"
+
+    def passes(self, goal_fraction: float) -> bool:
+        """Whether an in-training evaluation's goal fraction at the current stage lets the run
+        advance: it reaches the threshold and a next stage exists."""
+        return not self.final and goal_fraction >= self.settings.threshold
+
+    def advance(self, *, env_steps: int) -> None:
+        """Starts the next stage at ``env_steps``."""
+        if self.final:
+            raise ValueError(f"the curriculum is at its last stage ({self.describe()})")
+        self.stage += 1
+        self.advances.append(env_steps)
+
+    def allocation(self, num_envs: int, stage: int | None = None) -> list[tuple[int, int]]:
+        """``(stage, environments)`` of every stage in the mix at ``stage`` (the current one if
+        None), earliest first, the current stage last; a stage that the mix leaves no
+        environment is left out.
+
+        Raises:
+            ValueError: if the mix leaves the current stage no environment.
+        """
+        stage = self.stage if stage is None else stage
+        earlier = round(self.settings.mix * num_envs) if stage else 0
+        if num_envs - earlier < 1:
+            raise ValueError(
+                f"train.num_envs={num_envs} with curriculum.mix={self.settings.mix} leaves no "
+                "environment on the current stage; raise train.num_envs or lower curriculum.mix"
+            )
+        share, remainder = divmod(earlier, max(stage, 1))
+        counts = [(i, share + (i < remainder)) for i in range(stage)]
+        return [(i, n) for i, n in counts if n] + [(stage, num_envs - earlier)]
+
+    def mix(self, num_envs: int) -> tuple[list[TerraShiftConfig], list[int]]:
+        """The scenes of :meth:`allocation` and their environments, as
+        :class:`~terrashift_rl.envs.mixed.MixedSceneEnv` takes them."""
+        allocation = self.allocation(num_envs)
+        return [self.scenes[i] for i, _ in allocation], [n for _, n in allocation]
+
+    def stage_seed(self, seed: int) -> int:
+        """The seed of the current stage's mix for a run seeded ``seed``: the scene in place
+        ``i`` of the mix gets ``seed + stage * stages + i``, so every stage's streams differ."""
+        return seed + self.stage * len(self.scenes)
+
+    def seat(self, env: MixedSceneEnv, *, seed: int) -> None:
+        """Gives ``env`` the current stage's :meth:`mix` over its environments; their episodes
+        start at the next reset."""
+        env.set_scenes(*self.mix(env.batch_size[0]), seed=self.stage_seed(seed))
+
+    def state_dict(self) -> dict[str, Any]:
+        """The stage, the env-steps of each advance and the stages' sizes."""
+        return {
+            "stage": self.stage,
+            "advances": list(self.advances),
+            "scenes": [list(_sizes(scene)) for scene in self.scenes],
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Continues at the stage of ``state``; raises ``ValueError`` if its stages differ
+        from this curriculum's."""
+        mine = [list(_sizes(scene)) for scene in self.scenes]
+        if state["scenes"] != mine:
+            raise ValueError(
+                f"the checkpoint's curriculum has the stages (grid_size, num_agents, "
+                f"num_objects) {state['scenes']}, these settings give {mine}; resume with the "
+                "curriculum and env settings it was trained with"
+            )
+        self.stage = state["stage"]
+        self.advances = list(state["advances"])
+
+
+def make_curriculum_env(
+    curriculum: Curriculum,
+    networks: TerraShiftNetworks,
+    *,
+    num_envs: int,
+    device: torch.device | str,
+    seed: int,
+) -> TransformedEnv:
+    """The training environments of ``curriculum``: its current stage's mix
+    (:meth:`Curriculum.seat`) in a :class:`~terrashift_rl.envs.mixed.MixedSceneEnv` padded to
+    the target's agents and spheres from the first stage on, so that the batch keeps its shapes
+    (and a captured graph stays valid) through every advance, with the transforms the recurrent
+    policy needs (``is_init`` and its state)."""
+    target = curriculum.scenes[-1]
+    base = MixedSceneEnv(
+        *curriculum.mix(num_envs),
+        num_agents=target.num_agents,
+        num_objects=target.num_objects,
+        device=device,
+        seed=curriculum.stage_seed(seed),
+    )
+    primer = networks.make_tensordict_primer(target.num_agents)
+    return TransformedEnv(base, Compose(InitTracker(), primer))
+
+
+class CurriculumHook(TrainerHook):
+    """Runs a :class:`Curriculum` in an :class:`~terrashift_rl.training.trainer.OnPolicyTrainer`
+    on the environments of :func:`make_curriculum_env` (handed to
+    :func:`~terrashift_rl.training.terrashift.make_trainer` as its ``scene_state``).
+
+    Checkpoints hold the stage and the simulators of every scene in the mix, so a resumed run
+    continues at the same stage in the same episodes. :meth:`after_iteration`, called by every
+    process after each iteration, scores the current stage every ``eval_every`` iterations
+    until the target and advances every process together when it passes the threshold.
+
+    Args:
+        curriculum: the stages and the run's place in them.
+        env: the training environments (``make_curriculum_env(...).base_env``).
+        make_evaluation_env: builds the evaluation environments of a scene (evaluation mode
+            and its episodes and seed applied); None on a process that does not evaluate.
+        actor: the policy to score.
+
+    Keyword Args:
+        seed: the seed of this process's training environments.
+        eval_seed: the seed of every evaluation's scenes.
+    """
+
+    state_keys = ("curriculum", "simulator")
+
+    def __init__(
+        self,
+        curriculum: Curriculum,
+        env: MixedSceneEnv,
+        make_evaluation_env: Callable[[TerraShiftConfig], EnvBase] | None,
+        actor: Callable,
+        *,
+        seed: int,
+        eval_seed: int,
+    ) -> None:
+        self.curriculum = curriculum
+        self.env = env
+        self.make_evaluation_env = make_evaluation_env
+        self.actor = actor
+        self.seed = seed
+        self.eval_seed = eval_seed
+        self._evaluation: tuple[int, EnvBase] | None = None  # (stage, its environments)
+
+    def after_iteration(self, trainer: OnPolicyTrainer) -> dict[str, float]:
+        """Every ``eval_every`` iterations before the target: scores the current stage (on the
+        evaluating process) and, if that passes the threshold, starts the next stage on every
+        process at once (the environments take its mix and the trainer starts new episodes).
+        Returns the metrics to log: ``curriculum_stage`` (from 1, after any advance) and the
+        scores, ``curriculum_eval_goal_fraction``, ...."""
+        curriculum = self.curriculum
+        stage = {"curriculum_stage": float(curriculum.stage + 1)}
+        if curriculum.final or trainer.iteration % curriculum.settings.eval_every:
+            return stage
+        scores, passed = {}, False
+        if self.make_evaluation_env is not None:
+            scores = self._evaluate()
+            passed = curriculum.passes(scores["eval_goal_fraction"])
+        if distributed.any_process(passed):
+            curriculum.advance(env_steps=trainer.env_steps)
+            curriculum.seat(self.env, seed=self.seed)
+            trainer.restart_episodes()
+        return {
+            "curriculum_stage": float(curriculum.stage + 1),
+            **{f"curriculum_{name}": value for name, value in scores.items()},
+        }
+
+    def _evaluate(self) -> dict[str, float]:
+        stage = self.curriculum.stage
+        if self._evaluation is None or self._evaluation[0] != stage:
+            self._evaluation = (stage, self.make_evaluation_env(self.curriculum.scene))
+        return evaluate_periodically(self._evaluation[1], self.actor, seed=self.eval_seed)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "curriculum": self.curriculum.state_dict(),
+            "simulator": self.env.simulator_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.curriculum.load_state_dict(state["curriculum"])
+        self.curriculum.seat(self.env, seed=self.seed)
+        self.env.load_simulator_state(state["simulator"])
