@@ -38,11 +38,10 @@ import subprocess
 import sys
 import tempfile
 import time
-from datetime import date
 from pathlib import Path
 
 import torch
-from common import device_name, read_series, write_results
+from common import benchmark_parser, read_series, run_header, table_header, table_row, write_results
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ROOT / "recipes" / "mapoca_pretrain.py"
@@ -155,29 +154,37 @@ def run_seeds(args: argparse.Namespace, folder: Path) -> list[dict]:
                 raise SystemExit(f"seed {seed} failed (status {process.returncode}):\n{tail}")
             (scalars,) = run_dir.glob("logs/*/scalars")
             done.append(summarize(seed, scalars, args.thresholds, elapsed))
-            print(format_row(done[-1], args.thresholds), flush=True)
+            print(table_row(table_cells(done[-1], args.thresholds)), flush=True)
     return sorted(done, key=lambda entry: entry["seed"])
 
 
-def format_row(entry: dict, thresholds: list[float]) -> str:
+def table_cells(entry: dict, thresholds: list[float]) -> list[str]:
+    """A seed's row of the printed table."""
+
     def cell(value, spec: str) -> str:
         return "-" if value is None else format(value, spec)
 
-    goals = " | ".join(
-        f"{cell(entry['to_goal'][f'{t:g}']['seconds'], '>7.0f')} "
-        f"{cell(entry['to_goal'][f'{t:g}']['env_steps'], '>12,')}"
+    goals = [
+        f"{cell(entry['to_goal'][f'{t:g}']['seconds'], '.0f')} s, "
+        f"{cell(entry['to_goal'][f'{t:g}']['env_steps'], ',')}"
         for t in thresholds
+    ]
+    split = (
+        f"{entry['collection_seconds']:.2f} / {entry['estimation_seconds']:.2f} / "
+        f"{entry['epochs_seconds']:.2f}"
     )
-    return (
-        f"{entry['seed']:>4} | {goals} | {entry['final_goal_fraction']:>5.3f} | "
-        f"{entry['env_steps_per_s']:>9,.0f} | {entry['collection_seconds']:.2f} / "
-        f"{entry['estimation_seconds']:.2f} / {entry['epochs_seconds']:.2f} | "
-        f"{entry['evaluation_seconds']:>6.0f}"
-    )
+    return [
+        entry["seed"],
+        *goals,
+        f"{entry['final_goal_fraction']:.3f}",
+        f"{entry['env_steps_per_s']:,.0f}",
+        split,
+        f"{entry['evaluation_seconds']:.0f}",
+    ]
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = benchmark_parser(__doc__)
     parser.add_argument("--seeds", type=int, nargs="+", default=[7, 8, 9, 10])
     parser.add_argument("--minutes", type=float, default=8.0, help="run.minutes of each seed")
     parser.add_argument("--eval-every", type=int, default=10, help="iterations")
@@ -201,19 +208,19 @@ def main() -> None:
     if args.out is None:
         name = "time_to_goal_smoke" if args.smoke else f"time_to_goal_{device.type}"
         args.out = Path(__file__).parent / "results" / f"{name}.json"
-    name = device_name(device)
+    header = run_header(device)
     if args.processes > 1:
-        name = f"{args.processes} x {name}"
+        header["device"] = f"{args.processes} x {header['device']}"
     example = recipe_command(args.seeds[0], args, Path("<run dir>"))
     example = [
         "python",
         *(str(RECIPE.relative_to(ROOT)) if p == str(RECIPE) else p for p in example[1:]),
     ]
-    command = " ".join(shlex.quote(part) for part in ["python", *sys.argv])
-    print(f"time to goal: {name}, {len(args.seeds)} seed(s) of {args.minutes:g} minutes")
-    print(f"each: {' '.join(shlex.quote(part) for part in example)}")
-    goals = " | ".join(f"s to {t:g}, env-steps" for t in args.thresholds)
-    print(f"seed | {goals} | final | env-steps/s | collect / estimate / epochs s | eval s")
+    print(f"time to goal: {header['device']}, {len(args.seeds)} seed(s) of {args.minutes:g} min")
+    print(f"each: {shlex.join(example)}")
+    goals = [f"to {t:g}: s, env-steps" for t in args.thresholds]
+    columns = ["seed", *goals, "final", "env-steps/s", "collect / estimate / epochs s", "eval s"]
+    print(table_header(columns))
     with tempfile.TemporaryDirectory() as scratch:
         folder = args.keep or Path(scratch)
         folder.mkdir(parents=True, exist_ok=True)
@@ -225,11 +232,8 @@ def main() -> None:
     )
     median = statistics.median(reached)
     payload = {
-        "date": date.today().isoformat(),
-        "device": name,
-        "torch": torch.__version__,
-        "command": command,
-        "recipe_command": " ".join(shlex.quote(part) for part in example),
+        **header,
+        "recipe_command": shlex.join(example),
         "minutes": args.minutes,
         "eval_every": args.eval_every,
         "thresholds": args.thresholds,
