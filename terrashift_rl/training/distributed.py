@@ -198,16 +198,11 @@ class Watchdog:
 
     @contextlib.contextmanager
     def watch(self, operation: str, *, iteration: int | None = None) -> Iterator[None]:
-        """Marks the body as a stretch that waits for the other ranks. Nested stretches name
-        the operation more precisely; the outermost one's start counts."""
+        """Marks the body as a stretch that waits for the other ranks in ``operation``."""
         if iteration is not None:
             self.iteration = iteration
         outer = self._waiting
-        self._waiting = (
-            (operation, time.monotonic())
-            if outer is None
-            else (f"{outer[0]}: {operation}", outer[1])
-        )
+        self._waiting = (operation, time.monotonic())
         try:
             yield
         finally:
