@@ -16,16 +16,18 @@ warm-up and the final checkpoint included). Prints a table and writes JSON.
     python benchmarks/distributed_scaling.py --overrides train=throughput model=medium
     python benchmarks/distributed_scaling.py --smoke --processes 1 2  # CPU, gloo, smoke config
 
-Every process runs with ``OMP_NUM_THREADS=1`` unless the variable is set (torchrun's default
-from 2 processes on, here for 1 too). ``--smoke`` runs the recipe's smoke config (4
-environments per process, tiny network) with ``--device cpu`` (gloo) by default: a check that
-the launch works, not a measurement.
+A launch that has not finished after ``--launch-timeout`` seconds is stopped, and the end of
+its output printed. Every process runs with ``OMP_NUM_THREADS=1`` unless the variable is set
+(torchrun's default from 2 processes on, here for 1 too). ``--smoke`` runs the recipe's smoke
+config (4 environments per process, tiny network) with ``--device cpu`` (gloo) by default: a
+check that the launch works, not a measurement.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -81,11 +83,27 @@ def measure(processes: int, args: argparse.Namespace, folder: Path) -> dict:
     ]
     # one thread per process at every N (torchrun's own default from N = 2 on), unless set
     env = {"OMP_NUM_THREADS": "1", **os.environ}
+    log = folder / f"processes_{processes}.log"
     start = time.perf_counter()
-    result = subprocess.run(command, capture_output=True, text=True, cwd=folder, env=env)
+    with log.open("w") as output:
+        # a session of its own: on a timeout, torchrun and its ranks are stopped together
+        launch = subprocess.Popen(
+            command,
+            cwd=folder,
+            env=env,
+            stdout=output,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        try:
+            launch.wait(timeout=args.launch_timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(launch.pid, signal.SIGKILL)
+            launch.wait()
     launch_seconds = time.perf_counter() - start
-    if result.returncode != 0:
-        raise SystemExit(f"{' '.join(command)} failed:\n{result.stderr[-4000:]}")
+    if launch.returncode != 0:
+        what = "timed out" if launch_seconds >= args.launch_timeout else "failed"
+        raise SystemExit(f"{' '.join(command)} {what}:\n{log.read_text()[-6000:]}")
     (scalars,) = run_dir.glob("logs/*/scalars")
 
     def timed(metric: str) -> float:
@@ -123,6 +141,12 @@ def main() -> None:
     parser.add_argument("--iters", type=int, default=20, help="timed iterations per launch")
     parser.add_argument(
         "--overrides", nargs="+", default=[], metavar="KEY=VALUE", help="more recipe overrides"
+    )
+    parser.add_argument(
+        "--launch-timeout",
+        type=float,
+        default=900.0,
+        help="seconds before a launch is stopped and reported (it never blocks the table)",
     )
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()

@@ -17,24 +17,58 @@ table and writes JSON.
 ``--profile N`` runs one more iteration per setting under ``torch.profiler`` and prints its N
 operators of most device time (CPU time on CPU), which go into the JSON too. Profile eager
 settings: kernels replayed from a CUDA graph are not attributed to operators.
+
+``--parts`` profiles instead one update of the pretraining recipe's own setting (its scene,
+network and training settings, with ``--overrides``), eagerly, after ``--warmup`` iterations:
+the device time of each network part's forward and backward passes (backward kernels are
+matched to the forward operation that recorded them), of the loss's other work, gradient
+clipping, the AdamW step and the value-estimation pass, and the host synchronisations.
+
+    python benchmarks/train_throughput.py --parts --warmup 2 --out results/update_parts.json
 """
 
 from __future__ import annotations
 
 import argparse
 import ast
+import collections
 import dataclasses
+import functools
 import statistics
 import time
 from pathlib import Path
 
 import torch
 from common import benchmark_parser, device_name, run_header, write_results
+from hydra import compose, initialize_config_dir
 from torch.autograd import DeviceType
 
 from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training import OnPolicyTrainer, TrainConfig, make_trainer, make_training_env
+from terrashift_rl.training.settings import RecipeConfig, register_config_schemas
+
+CONFIGS = Path(__file__).resolve().parents[1] / "recipes" / "configs"
+PARTS = {
+    "heightmap_encoder": "heightmap encoder (CNN)",
+    "object_encoder": "object encoder",
+    "agent_encoder": "agent encoder",
+    "cross_attention": "cross-attention",
+    "self_attention": "self-attention",
+    "feed_forward": "trunk feed-forward",
+    "output_mlp": "trunk output MLP",
+    "memory": "GRU memory",
+    "policy_head": "policy head",
+    "value_head": "value head",
+    "baseline_head": "baseline head",
+}
+"""The network parts ``--parts`` reports: the last name of a module's path, and its label."""
+PHASES = {
+    "value estimation": "value-estimation pass",
+    "Optimizer.step#AdamW.step": "AdamW step",
+    "clipping and step": "gradient norm and clipping",
+}
+"""Profiler ranges (innermost first wins) and the rows they give."""
 
 PRECISIONS = ("fp32", "tf32", "bf16")  # tf32: float32 with TensorFloat-32 matrix products
 # compiled: torch.compile without CUDA graphs; compiled-graphs: compiled networks replayed in them
@@ -171,6 +205,132 @@ def profile_iteration(trainer: OnPolicyTrainer, device: torch.device, rows: int)
     ]
 
 
+def recipe_trainer(overrides: list[str], device: torch.device) -> OnPolicyTrainer:
+    """A trainer with the pretraining recipe's scene, network and training settings."""
+    register_config_schemas()
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
+        settings = RecipeConfig.of(compose(config_name="mapoca_pretrain", overrides=overrides))
+    networks = make_terrashift_networks(settings.model).to(device)
+    env = make_training_env(
+        settings.env, networks, num_envs=settings.train.num_envs, device=device, seed=0
+    )
+    return make_trainer(env, networks, settings.train)
+
+
+def labelled(label: str, function):
+    """``function`` inside a profiler range named ``label``."""
+
+    @functools.wraps(function)
+    def inside(*args, **kwargs):
+        with torch.profiler.record_function(label):
+            return function(*args, **kwargs)
+
+    return inside
+
+
+def profile_update_parts(trainer: OnPolicyTrainer) -> dict:
+    """One eager update of a freshly collected batch under torch.profiler, its kernel time by
+    network part (forward, and backward matched through the autograd sequence numbers), by
+    phase, and the host synchronisations (prints a table)."""
+    data = trainer.collect()
+    trainer.algorithm = dataclasses.replace(
+        trainer.algorithm, estimate=labelled("value estimation", trainer.algorithm.estimate)
+    )
+    trainer._step = labelled("clipping and step", trainer._step)
+    trainer._update_steps = {}
+    ranges = collections.defaultdict(list)
+    handles = []
+    for name, module in trainer.networks.named_modules():
+        part = PARTS.get(name.rsplit(".", 1)[-1])
+        if part is None:
+            continue
+
+        def enter(module, args, label=f"forward: {part}"):
+            ranges[id(module)].append(torch.profiler.record_function(label).__enter__())
+
+        def leave(module, args, output):
+            ranges[id(module)].pop().__exit__(None, None, None)
+
+        handles += [module.register_forward_pre_hook(enter), module.register_forward_hook(leave)]
+    activities = [torch.profiler.ProfilerActivity.CPU]
+    if trainer.device.type == "cuda":
+        activities.append(torch.profiler.ProfilerActivity.CUDA)
+    try:
+        with torch.profiler.profile(activities=activities) as profiler:
+            start = time.perf_counter()
+            trainer.update(data)
+            seconds = time.perf_counter() - start
+    finally:
+        for handle in handles:
+            handle.remove()
+    events = profiler.events()
+
+    def enclosing(event) -> list:
+        chain = []
+        while event is not None:
+            chain.append(event)
+            event = event.cpu_parent
+        return chain
+
+    # forward operations' sequence numbers, by the part whose range holds them
+    part_of_sequence = {}
+    for event in events:
+        if event.sequence_nr < 0 or event.is_user_annotation:
+            continue
+        for outer in enclosing(event):
+            if outer.name.startswith("forward: "):
+                part_of_sequence.setdefault(event.sequence_nr, outer.name[len("forward: ") :])
+                break
+    rows = collections.Counter()
+    on_cuda = trainer.device.type == "cuda"  # else operators' own CPU time
+    for event in events:
+        kernel_us = event.self_device_time_total if on_cuda else event.self_cpu_time_total
+        if event.device_type != DeviceType.CPU or event.is_user_annotation or kernel_us <= 0:
+            continue
+        chain = enclosing(event)
+        names = [outer.name for outer in chain]
+        phase = next((PHASES[name] for name in names if name in PHASES), None)
+        forward = next((name for name in names if name.startswith("forward: ")), None)
+        backward = next(
+            (
+                part_of_sequence.get(outer.sequence_nr, "other")
+                for outer in chain
+                if "Backward" in outer.name and outer.sequence_nr >= 0
+            ),
+            None,
+        )
+        if phase is not None:
+            rows[phase] += kernel_us
+        elif forward is not None:
+            rows[f"{forward[len('forward: ') :]}, forward"] += kernel_us
+        elif backward is not None:
+            rows[f"{backward}, backward"] += kernel_us
+        else:
+            rows["other (loss arithmetic, indexing, copies)"] += kernel_us
+    total = sum(rows.values())
+    synchronisations = [
+        event
+        for event in events
+        if event.name in ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize")
+        or event.name == "aten::_local_scalar_dense"
+    ]
+    print(f"one update, eager: {total / 1e3:.1f} ms of kernels, {seconds:.2f} s under the profiler")
+    for name, kernel_us in rows.most_common():
+        print(f"  {name:<45} {kernel_us / 1e3:>8.1f} ms  {kernel_us / total:>6.1%}")
+    counts = collections.Counter(event.name for event in synchronisations)
+    print(f"  host synchronisations: {dict(counts)}")
+    return {
+        "kernel_ms": total / 1e3,
+        "profiled_seconds": seconds,
+        "minibatch_updates": trainer.config.epochs * trainer.config.minibatches,
+        "rows": [
+            {"part": name, "kernel_ms": kernel_us / 1e3, "share": kernel_us / total}
+            for name, kernel_us in rows.most_common()
+        ],
+        "host_synchronisations": dict(counts),
+    }
+
+
 def format_row(row: dict) -> str:
     name = (
         f"{row['num_envs']:>6} | {row['epochs']}x{row['minibatches']:<3} | {row['precision']} | "
@@ -212,6 +372,14 @@ def main() -> None:
         help="profile one more iteration per setting and print its N costliest operators",
     )
     parser.add_argument(
+        "--parts",
+        action="store_true",
+        help="profile one update of the pretraining recipe's setting by network part",
+    )
+    parser.add_argument(
+        "--overrides", nargs="+", default=[], metavar="KEY=VALUE", help="recipe overrides (--parts)"
+    )
+    parser.add_argument(
         "--out", type=Path, default=Path(__file__).parent / "results" / "train_throughput.json"
     )
     args = parser.parse_args()
@@ -220,6 +388,9 @@ def main() -> None:
         parser.error("--warmup must be >= 0, --iters >= 1 and --profile >= 0")
     device = torch.device(args.device)
     name = device_name(device)
+    if args.parts:
+        profile_recipe_update(args, device, name)
+        return
     fields = "".join(f" {field}={value}" for field, value in args.model.items())
     mode = ", deterministic algorithms" if args.deterministic else ""
     print(
@@ -240,6 +411,26 @@ def main() -> None:
         payload["rows"].append(measure(setting, args, device))
         print(format_row(payload["rows"][-1]), flush=True)
         write_results(args.out, payload)
+    print(f"wrote {args.out}")
+
+
+def profile_recipe_update(args: argparse.Namespace, device: torch.device, name: str) -> None:
+    """``--parts``: warm-up iterations with the recipe's execution (CUDA graphs), then one
+    update profiled eagerly on a trainer that continues from the same weights."""
+    overrides = [f"run.device={device.type}", *args.overrides]
+    trainer = recipe_trainer(overrides, device)
+    print(f"pretraining recipe ({' '.join(args.overrides) or 'defaults'}), {name}")
+    for _ in range(args.warmup):
+        trainer.train_iteration()
+    eager = recipe_trainer([*overrides, "train.cuda_graphs=false"], device)
+    eager.load_state_dict(trainer.state_dict())
+    payload = {
+        **run_header(device),
+        "overrides": args.overrides,
+        "warmup_iterations": args.warmup,
+        "parts": profile_update_parts(eager),
+    }
+    write_results(args.out, payload)
     print(f"wrote {args.out}")
 
 

@@ -122,7 +122,12 @@ def train(cfg: DictConfig, *, run_dir: Path) -> Path:
     # --- setup: environments, networks, trainer (loss, optimiser), logger ---------------------
     joins = distributed.launched() and not distributed.is_distributed()
     if distributed.launched():  # one rank of torchrun's: its own device, seed and environments
-        device = distributed.init_process_group(run.device, key="run.device")
+        device = distributed.init_process_group(
+            run.device,
+            key="run.device",
+            timeout=run.collective_timeout_s,
+            timeout_key="run.collective_timeout_s",
+        )
     main, seed = distributed.is_main_process(), run.seed + distributed.rank()
     # rank 0 alone evaluates and writes best.pt and snapshots
     window = run.best_window if main else 0
@@ -170,9 +175,11 @@ def train(cfg: DictConfig, *, run_dir: Path) -> Path:
         OmegaConf.save(cfg, run_dir / "config.yaml")
 
     def evaluate_now() -> dict[str, float]:
-        return evaluate_periodically(
+        start = time.monotonic()
+        scores = evaluate_periodically(
             eval_env, networks.actor, seed=run.eval_seed, sampled=run.eval_sampled
         )
+        return {**scores, "eval_seconds": time.monotonic() - start}
 
     def save_last() -> None:
         state = last_state(trainer, configs, run_id, best)  # on every rank: a collective
@@ -197,11 +204,14 @@ def train(cfg: DictConfig, *, run_dir: Path) -> Path:
         goal_fraction = f"{zero_shot['eval_goal_fraction']:.3f}"
         progress.write(f"evaluation of the pretrained weights: {zero_shot}")
         log_scalars(logger, zero_shot, trainer.env_steps)
+    started = time.monotonic()
     try:
         with StopRequest(progress) as stop:
             for metrics in iterate_until(
                 trainer, total_env_steps=run.total_env_steps, deadline=deadline
             ):
+                # since the loop began, evaluations and checkpoints included, this one's aside
+                metrics["run_seconds"] = time.monotonic() - started
                 progress.update(trainer.env_steps - progress.n)
                 if stages is not None:
                     stage = curriculum.stage

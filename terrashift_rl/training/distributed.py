@@ -6,9 +6,10 @@ and takes the same optimiser steps as every other rank, on gradients averaged ov
 the global batch is ``world_size`` times a single process's. What the ranks exchange:
 
 - once, when the trainer is built: rank 0's parameters and buffers (:func:`broadcast_from_main`);
-- at every mini-batch: the gradients, in one flat all-reduce between backward and clipping
-  (:func:`average_gradients`), and with ``lr_schedule=adaptive`` the KL estimate the learning
-  rate follows (:func:`average`); both are captured in the update's CUDA graph;
+- at every mini-batch: the gradients (with ``lr_schedule=adaptive`` also the KL estimate the
+  learning rate follows), in one flat all-reduce (:func:`average`) between the backward pass
+  and the optimiser step. With CUDA graphs the trainer replays the backward pass and the step as
+  two graphs and runs the all-reduce between them, eagerly: no collective is ever captured;
 - at every value-estimation pass: the moments of the new returns, so the return statistics stay
   one (:class:`~terrashift_rl.objectives.normalization.ValueNormalizer` with ``synchronize``);
 - at every iteration: the mean loss terms (so that every rank reaches the same verdict on
@@ -17,15 +18,27 @@ the global batch is ``world_size`` times a single process's. What the ranks exch
 - at every checkpoint: each rank's environments and random streams, gathered to rank 0
   (:func:`gather_to_main`), which alone writes files.
 
+No exchange waits forever. Every collective runs under the process group's timeout (with NCCL,
+torch's watchdog aborts a collective that exceeds it), and each stretch of work that ends by
+waiting for the other ranks runs under :func:`watch`: when one lasts longer than the timeout, a
+thread of this process writes which rank, iteration and exchange it was, with every thread's
+stack, and ends the process; ``torchrun`` then stops the other ranks.
+
 With no process group (a plain ``python`` run) every function here is the identity or does
 nothing, so a single process trains exactly as it would without them.
 """
 
 from __future__ import annotations
 
+import contextlib
+import faulthandler
 import io
 import os
-from collections.abc import Iterable, Sequence
+import sys
+import threading
+import time
+from collections.abc import Iterable, Iterator, Sequence
+from datetime import timedelta
 from typing import Any
 
 import torch
@@ -33,9 +46,9 @@ import torch.distributed as dist
 from torch import Tensor, nn
 
 __all__ = [
+    "Watchdog",
     "any_process",
     "average",
-    "average_gradients",
     "broadcast_from_main",
     "combine_metrics",
     "destroy_process_group",
@@ -46,11 +59,18 @@ __all__ = [
     "launched",
     "rank",
     "rank_entries",
+    "watch",
     "world_size",
 ]
 
 BACKENDS = {"cuda": "nccl", "cpu": "gloo"}
 """The torch.distributed backend of each kind of device."""
+
+WATCHDOG_EXIT_CODE = 75
+"""The exit status of a rank that the :class:`Watchdog` ended."""
+BACKSTOP_S = 30.0
+"""How much longer than the watchdog's timeout the process group's own timeout is: torch's
+watchdog (NCCL) or a collective's error (gloo) ends a rank only where this module's has not."""
 
 
 def launched() -> bool:
@@ -59,15 +79,24 @@ def launched() -> bool:
     return "WORLD_SIZE" in os.environ
 
 
-def init_process_group(device: Any, *, key: str) -> torch.device:
+def init_process_group(
+    device: Any, *, key: str, timeout: float = 300.0, timeout_key: str = "timeout"
+) -> torch.device:
     """Joins the process group that torchrun's environment variables describe and returns this
     process's device, for the device setting ``key`` = ``device``: ``cuda`` (or ``auto`` where
     CUDA is present) gives ``cuda:LOCAL_RANK`` and NCCL, ``cpu`` (or ``auto`` without CUDA) the
     CPU and gloo.
 
+    A stretch of waiting for the other ranks (:func:`watch`) then lasts at most ``timeout``
+    seconds (the setting ``timeout_key``, named in the message) before a :class:`Watchdog` ends
+    this process; every collective also runs under the process group's timeout,
+    :data:`BACKSTOP_S` longer, which torch enforces (for NCCL with its watchdog thread and
+    asynchronous error handling).
+
     Raises ``ValueError`` naming ``key`` for another value (``cuda:<index>``: each rank takes its
     local rank's GPU) and when torchrun started more processes on this host than it has GPUs.
     """
+    global _watchdog
     if device == "auto":
         kind = "cuda" if torch.cuda.is_available() else "cpu"
     elif device in BACKENDS:
@@ -91,14 +120,26 @@ def init_process_group(device: Any, *, key: str) -> torch.device:
     else:
         local = torch.device("cpu")
     if not is_distributed():
-        dist.init_process_group(BACKENDS[kind], device_id=local if kind == "cuda" else None)
+        # a collective past the timeout aborts the process instead of blocking (torch's default
+        # too; set here so that an inherited 0 cannot turn it off unseen)
+        os.environ["TORCH_NCCL_ASYNC_ERROR_HANDLING"] = "3"
+        dist.init_process_group(
+            BACKENDS[kind],
+            device_id=local if kind == "cuda" else None,
+            timeout=timedelta(seconds=timeout + BACKSTOP_S),
+        )
+        _watchdog = Watchdog(timeout, rank=dist.get_rank(), setting=timeout_key)
     return local
 
 
 def destroy_process_group() -> None:
-    """Leaves the process group, if this process is in one."""
+    """Leaves the process group, if this process is in one, and stops its watchdog."""
+    global _watchdog
     if is_distributed():
         dist.destroy_process_group()
+    if _watchdog is not None:
+        _watchdog.stop()
+        _watchdog = None
 
 
 def is_distributed() -> bool:
@@ -124,6 +165,84 @@ def is_main_process() -> bool:
     return int(os.environ.get("RANK", "0")) == 0
 
 
+class Watchdog:
+    """Ends this process when a stretch of work that waits for the other ranks (:meth:`watch`)
+    lasts longer than ``timeout`` seconds: a rank that stopped answering or died then takes the
+    run down with a message, instead of leaving the others blocked.
+
+    A thread checks the stretch in progress a few times per ``timeout``. When one has run out,
+    it writes to standard error the rank, the iteration, the operation, how long it waited and
+    the setting ``setting`` that holds the timeout, then every thread's Python stack
+    (:mod:`faulthandler`), and ends the process with status :data:`WATCHDOG_EXIT_CODE`
+    (``os._exit``: the main thread is blocked, and files are written atomically, so the last
+    checkpoint stays whole). ``torchrun`` then stops the other ranks.
+
+    Args:
+        timeout: seconds a stretch may last.
+        rank: this process's rank, for the message.
+        setting: the name of the setting that holds ``timeout``, for the message.
+    """
+
+    def __init__(self, timeout: float, *, rank: int, setting: str = "timeout") -> None:
+        if not timeout > 0:
+            raise ValueError(f"{setting} must be a number of seconds > 0, got {timeout!r}")
+        self.timeout = float(timeout)
+        self.rank = rank
+        self.setting = setting
+        self.iteration: int | None = None
+        """The iteration the last :meth:`watch` that named one was in."""
+        self._waiting: tuple[str, float] | None = None  # (operation, since when)
+        self._stopped = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="collective-watchdog", daemon=True)
+        self._thread.start()
+
+    @contextlib.contextmanager
+    def watch(self, operation: str, *, iteration: int | None = None) -> Iterator[None]:
+        """Marks the body as a stretch that waits for the other ranks in ``operation``."""
+        if iteration is not None:
+            self.iteration = iteration
+        outer = self._waiting
+        self._waiting = (operation, time.monotonic())
+        try:
+            yield
+        finally:
+            self._waiting = outer
+
+    def stop(self) -> None:
+        """Stops the checking thread."""
+        self._stopped.set()
+        self._thread.join()
+
+    def _run(self) -> None:
+        while not self._stopped.wait(min(1.0, self.timeout / 4)):
+            waiting = self._waiting
+            if waiting is not None and time.monotonic() - waiting[1] > self.timeout:
+                self._abort(*waiting)
+
+    def _abort(self, operation: str, since: float) -> None:
+        iteration = "" if self.iteration is None else f" in iteration {self.iteration}"
+        sys.stderr.write(
+            f"rank {self.rank}: {operation}{iteration} has waited "
+            f"{time.monotonic() - since:.0f} s for the other ranks, longer than "
+            f"{self.setting}={self.timeout:g}: another rank stopped answering or died. Ending "
+            f"this rank (exit status {WATCHDOG_EXIT_CODE}); torchrun stops the others. The "
+            "last checkpoint written is whole. This rank's threads:\n"
+        )
+        sys.stderr.flush()
+        faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+        os._exit(WATCHDOG_EXIT_CODE)
+
+
+_watchdog: Watchdog | None = None
+
+
+def watch(operation: str, *, iteration: int | None = None) -> contextlib.AbstractContextManager:
+    """:meth:`Watchdog.watch` of this process's watchdog; without a process group, nothing."""
+    if _watchdog is None:
+        return contextlib.nullcontext()
+    return _watchdog.watch(operation, iteration=iteration)
+
+
 def average(tensor: Tensor) -> Tensor:
     """The mean of ``tensor`` over the processes, as a new tensor (``tensor`` itself in a single
     process). Every process must call it, with a tensor of the same shape."""
@@ -134,30 +253,16 @@ def average(tensor: Tensor) -> Tensor:
     return total.div_(dist.get_world_size())
 
 
-def average_gradients(parameters: Sequence[nn.Parameter]) -> None:
-    """Replaces the gradients of ``parameters`` by their means over the processes, in a single
-    all-reduce of one flat buffer (one collective per update, and no host synchronisation, so a
-    CUDA graph can capture it). Every process must pass the same parameters, each with a
-    gradient; afterwards the gradients are views of that buffer."""
-    if world_size() == 1 or not parameters:
-        return
-    flat = torch.cat([parameter.grad.reshape(-1) for parameter in parameters])
-    dist.all_reduce(flat)
-    flat.div_(dist.get_world_size())
-    pieces = flat.split([parameter.numel() for parameter in parameters])
-    for parameter, piece in zip(parameters, pieces, strict=True):
-        parameter.grad = piece.view_as(parameter)
-
-
 def broadcast_from_main(modules: Iterable[nn.Module]) -> None:
     """Copies rank 0's parameters and buffers of ``modules`` into every other rank's, so that
     training starts from one set of weights whatever each rank's seed."""
     if world_size() == 1:
         return
     tensors = {id(t): t for module in modules for t in (*module.parameters(), *module.buffers())}
-    with torch.no_grad():
+    with torch.no_grad(), watch("the broadcast of rank 0's weights"):
         for tensor in tensors.values():
             dist.broadcast(tensor.data, src=0)
+        dist.barrier()
 
 
 def any_process(flag: bool) -> bool:
@@ -168,8 +273,9 @@ def any_process(flag: bool) -> bool:
     nccl = dist.get_backend() == "nccl"  # which only reduces tensors on a GPU
     device = torch.device("cuda", torch.cuda.current_device()) if nccl else torch.device("cpu")
     value = torch.tensor(float(flag), device=device)
-    dist.all_reduce(value, op=dist.ReduceOp.MAX)
-    return bool(value.item())
+    with watch("the vote on stopping"):
+        dist.all_reduce(value, op=dist.ReduceOp.MAX)
+        return bool(value.item())
 
 
 def gather_to_main(value: Any) -> list[Any] | None:
@@ -181,7 +287,8 @@ def gather_to_main(value: Any) -> list[Any] | None:
     buffer = io.BytesIO()
     torch.save(value, buffer)
     gathered = [None] * dist.get_world_size() if dist.get_rank() == 0 else None
-    dist.gather_object(buffer.getvalue(), gathered, dst=0)
+    with watch("gathering the checkpoint's per-rank state"):
+        dist.gather_object(buffer.getvalue(), gathered, dst=0)
     if gathered is None:
         return None
     # written by this run's own processes a moment ago: nothing foreign is unpickled
@@ -196,7 +303,8 @@ def combine_metrics(metrics: dict[str, float], *, summed: Iterable[str]) -> dict
     if world_size() == 1:
         return metrics
     gathered: list[dict[str, float]] = [{}] * dist.get_world_size()
-    dist.all_gather_object(gathered, metrics)
+    with watch("the exchange of the metrics"):
+        dist.all_gather_object(gathered, metrics)
     summed = set(summed)
     combined = {}
     for name in dict.fromkeys(name for values in gathered for name in values):

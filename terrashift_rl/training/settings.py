@@ -284,6 +284,10 @@ class RunConfig:
     """A checkpoint of this recipe to continue from, exactly."""
     pretrained: str | None = setting(None, PATH, null="no pretrained weights")
     """A checkpoint whose network weights start this run (finetuning)."""
+    collective_timeout_s: float = setting(300.0, above(0))
+    """Under ``torchrun``: seconds a rank may wait for the others in one exchange before it
+    ends the run with a message naming itself, the iteration and the exchange (one of them
+    stopped answering or died)."""
 
 
 @dataclass

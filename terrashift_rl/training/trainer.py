@@ -25,6 +25,7 @@ environments, and all take the same steps on gradients averaged over the process
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import os
 import time
@@ -33,7 +34,7 @@ from dataclasses import asdict
 from typing import Any
 
 import torch
-from tensordict import NestedKey, TensorDictBase
+from tensordict import NestedKey, TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -60,6 +61,8 @@ _TERM_SETTINGS = {
     "loss_teacher": "teacher_coeff",
 }
 """The loss setting that weighs each loss term: a suspect when the loss turns non-finite."""
+_EXCHANGED = "exchanged"
+"""The entry of a mini-batch's backward output that the processes average (gradients, KL)."""
 
 
 class TrainerHook:
@@ -252,30 +255,32 @@ class OnPolicyTrainer:
         self._apply_schedules()
         self._train_mode(False)
         start = time.perf_counter()
-        with self._autocast():
-            self.algorithm.estimate(data)
-        self._synchronize()
+        iteration = self.iteration + 1
+        with distributed.watch(
+            "the value estimation (all-reduce of the returns)", iteration=iteration
+        ):
+            with self._autocast():
+                self.algorithm.estimate(data)
+            self._synchronize()
         estimation_seconds = time.perf_counter() - start
         self._train_mode(True)
         sums: dict[str, torch.Tensor] = {}
         count = 0
-        for _ in range(config.epochs):
-            order = torch.randperm(data.shape[0], device=self.device)
-            for index in order.chunk(config.minibatches):
-                step = (len(index), warmup)  # one graph per mini-batch size and kind of step
-                if step not in self._update_steps:
-                    function = self._critic_step if warmup else self._update_step
-                    self._update_steps[step] = (
-                        self._graphed(function) if self.algorithm.capturable else function
-                    )
-                out = self._update_steps[step](data[index])
-                for key, value in out.items():
-                    # per-element diagnostics (torchrl's explained variance, ESS) are averaged
-                    sums[key] = sums.get(key, 0.0) + value.float().mean()
-                count += 1
-        # over every process, so that each reaches the same verdict in _check_finite
-        means = distributed.average(torch.stack(list(sums.values())) / count)
-        metrics = dict(zip(sums, means.tolist(), strict=True))
+        with distributed.watch("the mini-batch updates (all-reduces of the gradients)"):
+            for _ in range(config.epochs):
+                order = torch.randperm(data.shape[0], device=self.device)
+                for index in order.chunk(config.minibatches):
+                    step = (len(index), warmup)  # one graph per mini-batch size and kind of step
+                    if step not in self._update_steps:
+                        self._update_steps[step] = self._minibatch_update(critics_only=warmup)
+                    out = self._update_steps[step](data[index])
+                    for key, value in out.items():
+                        # per-element diagnostics (torchrl's explained variance, ESS) are averaged
+                        sums[key] = sums.get(key, 0.0) + value.float().mean()
+                    count += 1
+            # over every process, so that each reaches the same verdict in _check_finite
+            means = distributed.average(torch.stack(list(sums.values())) / count)
+            metrics = dict(zip(sums, means.tolist(), strict=True))
         metrics["lr_trunk_policy"] = float(self.optimizer.param_groups[0]["lr"])
         metrics["critic_warmup"] = float(warmup)
         metrics["clip_epsilon"] = float(self.loss.clip_epsilon)
@@ -283,40 +288,77 @@ class OnPolicyTrainer:
         metrics["estimation_seconds"] = estimation_seconds
         return metrics
 
-    def _update_step(self, batch: TensorDictBase) -> TensorDictBase:
-        """One gradient step on a mini-batch; returns the loss terms and diagnostics."""
+    def _minibatch_update(self, *, critics_only: bool) -> Callable:
+        """One mini-batch's update: the loss and its backward pass (:meth:`_backward`), the
+        gradients averaged over the processes, the clipped AdamW step (:meth:`_step`); with
+        ``critics_only``, of the critics alone (the trunk and the policy get no gradient, and
+        AdamW leaves them exactly as they are).
+
+        With CUDA graphs, where the algorithm's loss allows them, a single process replays the
+        whole update as one graph. Several processes replay the backward pass and the step as
+        two graphs and average between them, eagerly: a collective captured in a graph escapes
+        torch's NCCL watchdog (a peer that never joins it blocks the replay for ever), and a
+        capture waits, without a timeout, for every collective in flight to finish."""
+        backward = functools.partial(self._backward, critics_only=critics_only)
+        step = functools.partial(self._step, critics_only=critics_only)
+        graphs = self._graphs and self.algorithm.capturable
+        single = distributed.world_size() == 1
+        if graphs and not single:
+            backward, step = CudaGraphed(backward), CudaGraphed(step)
+
+        def update(batch: TensorDictBase) -> TensorDictBase:
+            out = backward(batch)
+            averaged = distributed.average(out.get(_EXCHANGED))  # itself in a single process
+            exchanged = TensorDict({_EXCHANGED: averaged}, device=averaged.device)
+            return out.exclude(_EXCHANGED).update(step(exchanged))
+
+        return CudaGraphed(update) if graphs and single else update
+
+    def _backward(self, batch: TensorDictBase, *, critics_only: bool) -> TensorDictBase:
+        """The loss terms and diagnostics of a mini-batch and, under ``_EXCHANGED``, what the
+        processes average: the gradient of every parameter that gets one, flattened into one
+        vector, followed by the KL estimate when the learning rate adapts to it."""
         with set_recurrent_mode(True), self._autocast():
             out = self.loss(batch)
-        if self.config.lr_schedule == "adaptive":
-            self._adapt_learning_rate(out.get("kl_approx"))
-        total = sum(value for key, value in out.items() if key.startswith("loss_"))
-        return self._step(out, total, frozen=())
-
-    def _critic_step(self, batch: TensorDictBase) -> TensorDictBase:
-        """A gradient step of the critics alone: the trunk and the policy, whose parameters get
-        no gradient, are left exactly as they are (AdamW skips them)."""
-        with set_recurrent_mode(True), self._autocast():
-            out = self.loss(batch)
-        total = sum(out.get(term) for term in self.algorithm.critic_terms)
-        return self._step(out, total, frozen=self._policy_parameters)
-
-    def _step(
-        self, out: TensorDictBase, total: torch.Tensor, frozen: list[torch.nn.Parameter] | tuple
-    ) -> TensorDictBase:
+        if critics_only:
+            total = sum(out.get(term) for term in self.algorithm.critic_terms)
+        else:
+            total = sum(value for key, value in out.items() if key.startswith("loss_"))
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
-        for parameter in frozen:
-            parameter.grad = None
-        # clip_grad_norm_ reads max_norm on the host; this keeps it a tensor
+        if critics_only:
+            for parameter in self._policy_parameters:
+                parameter.grad = None
         stepped = [p for p in self._parameters if p.grad is not None]
-        distributed.average_gradients(stepped)
-        grads = [p.grad for p in stepped]
+        self._stepped[critics_only] = stepped
+        pieces = [parameter.grad.reshape(-1) for parameter in stepped]
+        if self._adapts(critics_only):
+            pieces.append(out.get("kl_approx").detach().float().reshape(1))
+        out.set("loss_total", total)
+        return out.detach().set(_EXCHANGED, torch.cat(pieces))
+
+    def _step(self, exchanged: TensorDictBase, *, critics_only: bool) -> TensorDictBase:
+        """The clipped AdamW step from a :meth:`_backward` output's averaged ``_EXCHANGED``:
+        the gradients become views of it (and an adaptive learning rate follows its KL
+        estimate, :meth:`_adapt_learning_rate`); returns the gradient norm before clipping."""
+        stepped = self._stepped[critics_only]
+        flat = exchanged.get(_EXCHANGED)
+        sizes = [parameter.numel() for parameter in stepped]
+        *gradients, rest = flat.split([*sizes, flat.numel() - sum(sizes)])
+        for parameter, gradient in zip(stepped, gradients, strict=True):
+            parameter.grad = gradient.view_as(parameter)
+        if self._adapts(critics_only):
+            self._adapt_learning_rate(rest[0])
+        grads = [parameter.grad for parameter in stepped]
+        # clip_grad_norm_ reads max_norm on the host; this keeps it a tensor
         grad_norm = torch.nn.utils.get_total_norm(grads)
         torch._foreach_mul_(grads, (self._max_grad_norm / (grad_norm + 1e-6)).clamp(max=1.0))
         self.optimizer.step()
-        out.set("grad_norm", grad_norm)
-        out.set("loss_total", total)
-        return out.detach()
+        return TensorDict({"grad_norm": grad_norm})
+
+    def _adapts(self, critics_only: bool) -> bool:
+        """Whether a mini-batch update moves the trunk and policy's rate with the KL."""
+        return self.config.lr_schedule == "adaptive" and not critics_only
 
     def _check_finite(self, metrics: dict[str, float]) -> None:
         """Raises ``FloatingPointError`` naming the first loss term, gradient norm or parameter
@@ -443,12 +485,11 @@ class OnPolicyTrainer:
 
     # --- helpers ---------------------------------------------------------------------------
     def _adapt_learning_rate(self, kl: torch.Tensor) -> None:
-        """RSL-RL's rule on the KL estimate of the mini-batch about to be stepped: the trunk and
-        policy's rate moves by ``_KL_STEP`` when the KL leaves [target / 2, 2 target]. With CUDA
-        graphs the rates are tensors and this runs inside the captured update, without a host
-        synchronisation."""
+        """RSL-RL's rule on the KL estimate of the mini-batch about to be stepped (averaged over
+        the processes): the trunk and policy's rate moves by ``_KL_STEP`` when the KL leaves
+        [target / 2, 2 target]. With CUDA graphs the rates are tensors and this runs inside the
+        captured step, without a host synchronisation."""
         target = self.config.desired_kl
-        kl = distributed.average(kl.detach().float())
         step = torch.where(
             kl > 2.0 * target,
             1.0 / _KL_STEP,
@@ -504,6 +545,7 @@ class OnPolicyTrainer:
     def _reset_graphs(self) -> None:
         self._actor_step = self._graphed(self._act)
         self._update_steps: dict[tuple[int, bool], Callable] = {}
+        self._stepped: dict[bool, list[torch.nn.Parameter]] = {}
 
     def _autocast(self) -> contextlib.AbstractContextManager:
         if self.config.bf16 and self.device.type == "cuda":

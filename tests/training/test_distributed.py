@@ -1,12 +1,15 @@
-"""Data-parallel training on the CPU: two gloo processes train the smoke config, checkpoint and
-resume, with identical parameters after every update; the recipes under torchrun; the
+"""Data-parallel training: two gloo processes (two NCCL processes on a host with two GPUs) train
+the smoke config, checkpoint and resume, with identical parameters after every update; the
+recipes under torchrun; a rank that stops answering or dies ends the run with a message; the
 process-group helpers in a single process."""
 
 import importlib.util
 import os
+import re
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -40,10 +43,11 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
-def train_resume_and_record(rank: int, port: int, folder: Path) -> None:
+def train_resume_and_record(rank: int, port: int, folder: Path, device: str) -> None:
     """One rank, as torchrun would start it: a straight run of 3 iterations (a), a run of 1
-    (b) and b resumed to 3 (c), with the adaptive learning rate; after every update, this
-    rank's parameters, return statistics and learning rates go to a file."""
+    (b) and b resumed to 3 (c), with the adaptive learning rate, on ``device`` (``cpu``: gloo;
+    ``cuda``: NCCL, CUDA graphs and deterministic algorithms); after every update, this rank's
+    parameters, return statistics and learning rates go to a file."""
     os.environ.update(
         MASTER_ADDR="127.0.0.1",
         MASTER_PORT=str(port),
@@ -54,17 +58,16 @@ def train_resume_and_record(rank: int, port: int, folder: Path) -> None:
     )
     torch.set_num_threads(1)
     # joined once: the recipe's train() stays in a group it finds and leaves one it joined
-    distributed.init_process_group("cpu", key="run.device")
-    updates, trainers = [], []
+    distributed.init_process_group(device, key="run.device")
+    updates = []
     train_iteration = OnPolicyTrainer.train_iteration
 
     def recorded(trainer: OnPolicyTrainer) -> dict[str, float]:
-        trainers.append(trainer)
         metrics = train_iteration(trainer)
         parameters = [p.detach().reshape(-1) for _, p in trainer._named_parameters()]
         statistics = trainer.algorithm.value_normalizer.state_dict().values()
         rates = [float(group["lr"]) for group in trainer.optimizer.param_groups]
-        updates.append(torch.cat([*parameters, *(s.reshape(1) for s in statistics)]).clone())
+        updates.append(torch.cat([*parameters, *(s.reshape(1) for s in statistics)]).cpu())
         updates.append(torch.tensor(rates))
         return metrics
 
@@ -81,18 +84,13 @@ def train_resume_and_record(rank: int, port: int, folder: Path) -> None:
     with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
         for name, overrides in runs.items():
             overrides = [*overrides, "run.eval_every=2", "train.lr_schedule=adaptive"]
+            overrides += [f"run.device={device}", f"train.deterministic={device == 'cuda'}"]
             cfg = compose(config_name="smoke", overrides=overrides)
             (folder / name).mkdir(exist_ok=True)  # as Hydra makes it
             recipe.train(cfg, run_dir=folder / name)
     # each exchange on values that differ between the ranks: rank r has r
-    trainers[-1]._adapt_learning_rate(torch.tensor(float(rank)))  # a KL of 0.5: down by 1.5
-    weight = torch.nn.Parameter(torch.zeros(2))
-    weight.grad = torch.full((2,), float(rank))
-    distributed.average_gradients([weight])
     exchanged = {
-        "learning_rates": [float(group["lr"]) for group in trainers[-1].optimizer.param_groups],
-        "gradient": weight.grad.tolist(),
-        "average": distributed.average(torch.tensor(float(rank))).item(),
+        "average": distributed.average(torch.full((2,), float(rank), device=device)).tolist(),
         "any": distributed.any_process(rank == 1),
         "metrics": distributed.combine_metrics(
             {"episodes": 1.0 + rank, "reward": float(rank), "loss": 2.0}, summed=["episodes"]
@@ -103,9 +101,21 @@ def train_resume_and_record(rank: int, port: int, folder: Path) -> None:
     torch.save({"updates": updates, "exchanged": exchanged}, folder / f"rank{rank}.pt")
 
 
+TWO_GPUS = pytest.mark.skipif(
+    torch.cuda.device_count() < WORLD_SIZE, reason=f"needs {WORLD_SIZE} CUDA devices"
+)
+DEVICES = ["cpu", pytest.param("cuda", marks=[pytest.mark.gpu, TWO_GPUS])]
+
+
 @pytest.mark.slow
-def test_two_gloo_processes_train_alike_checkpoint_and_resume_exactly(tmp_path):
-    mp.spawn(train_resume_and_record, args=(free_port(), tmp_path), nprocs=WORLD_SIZE, join=True)
+@pytest.mark.parametrize("device", DEVICES)
+def test_two_processes_train_alike_checkpoint_and_resume_exactly(tmp_path, device):
+    mp.spawn(
+        train_resume_and_record,
+        args=(free_port(), tmp_path, device),
+        nprocs=WORLD_SIZE,
+        join=True,
+    )
     saved = [torch.load(tmp_path / f"rank{rank}.pt") for rank in range(WORLD_SIZE)]
     ranks = [rank["updates"] for rank in saved]
     assert len(ranks[0]) == len(ranks[1]) == 2 * (3 + 1 + 2)
@@ -115,10 +125,7 @@ def test_two_gloo_processes_train_alike_checkpoint_and_resume_exactly(tmp_path):
     assert not torch.equal(ranks[0][0], ranks[0][2])  # they do learn
     assert not torch.equal(ranks[0][1], ranks[0][3])  # the adaptive rate moves
     first, second = (rank["exchanged"] for rank in saved)
-    assert first["learning_rates"] == second["learning_rates"]
-    assert first["learning_rates"][0] == pytest.approx(float(ranks[0][-1][0]) / 1.5)
-    assert first["gradient"] == second["gradient"] == [0.5, 0.5]
-    assert first["average"] == second["average"] == 0.5
+    assert first["average"] == second["average"] == [0.5, 0.5]
     assert first["any"] and second["any"]
     assert first["metrics"] == second["metrics"] == {"episodes": 3.0, "reward": 0.5, "loss": 2.0}
     assert first["gathered"] == [0, 1] and second["gathered"] is None
@@ -138,21 +145,30 @@ def test_two_gloo_processes_train_alike_checkpoint_and_resume_exactly(tmp_path):
     assert any(not torch.equal(simulators[0][key], simulators[1][key]) for key in simulators[0])
 
 
-@pytest.mark.slow
-def test_the_recipes_under_torchrun_write_from_rank_zero_alone(tmp_path):
-    def torchrun(script: str, *overrides: str) -> subprocess.CompletedProcess:
-        command = [sys.executable, "-m", "torch.distributed.run", "--standalone"]
-        return subprocess.run(
-            [*command, f"--nproc_per_node={WORLD_SIZE}", str(ROOT / "recipes" / script)]
-            + ["--config-name", "smoke", *overrides],
-            cwd=tmp_path,
-            capture_output=True,
-            text=True,
-            timeout=300,
-            env={**os.environ, "OMP_NUM_THREADS": "1"},
-        )
+def torchrun(script: Path, folder: Path, *overrides: str) -> subprocess.CompletedProcess:
+    """``script`` (a recipe) under torchrun with two processes and the smoke config, in
+    ``folder``."""
+    command = [sys.executable, "-m", "torch.distributed.run", "--standalone"]
+    return subprocess.run(
+        [*command, f"--nproc_per_node={WORLD_SIZE}", str(script)]
+        + ["--config-name", "smoke", *overrides],
+        cwd=folder,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )
 
-    pretrain = torchrun("mapoca_pretrain.py", "run.total_env_steps=64", "run.eval_every=1")
+
+@pytest.mark.slow
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_recipes_under_torchrun_write_from_rank_zero_alone(tmp_path, device):
+    recipes = ROOT / "recipes"
+
+    def torchrun_recipe(script: str, *overrides: str) -> subprocess.CompletedProcess:
+        return torchrun(recipes / script, tmp_path, f"run.device={device}", *overrides)
+
+    pretrain = torchrun_recipe("mapoca_pretrain.py", "run.total_env_steps=64", "run.eval_every=1")
     assert pretrain.returncode == 0, pretrain.stderr
     # one Hydra folder (rank 0's), one line of summary
     (run_dir,) = [path.parent for path in tmp_path.glob("outputs/*/*/config.yaml")]
@@ -160,7 +176,7 @@ def test_the_recipes_under_torchrun_write_from_rank_zero_alone(tmp_path):
     last = load_checkpoint(run_dir / "checkpoints/last.pt")
     assert last["env_steps"] == 64 and last["world_size"] == WORLD_SIZE
 
-    finetune = torchrun(
+    finetune = torchrun_recipe(
         "mapoca_finetune.py",
         f"run.pretrained={run_dir}/checkpoints/last.pt",
         "env.grid_size=10",
@@ -176,6 +192,7 @@ def test_the_recipes_under_torchrun_write_from_rank_zero_alone(tmp_path):
     single = subprocess.run(
         [sys.executable, str(ROOT / "recipes" / "mapoca_pretrain.py"), "--config-name", "smoke"]
         + [f"run.resume={run_dir}/checkpoints/last.pt", "run.total_env_steps=96"]
+        + [f"run.device={device}"]
         + ["hydra.run.dir=single"],
         cwd=tmp_path,
         capture_output=True,
@@ -185,6 +202,99 @@ def test_the_recipes_under_torchrun_write_from_rank_zero_alone(tmp_path):
     assert single.returncode == 0, single.stderr
     assert "trained by 2 process(es) and continues with 1" in single.stdout
     assert load_checkpoint(tmp_path / "single/checkpoints/last.pt")["env_steps"] == 96
+
+
+STOPS_ANSWERING = """
+import sys, time
+import torch
+from terrashift_rl.training import distributed
+timeout = float(sys.argv[1])
+distributed.init_process_group(
+    "cpu", key="run.device", timeout=timeout, timeout_key="run.collective_timeout_s"
+)
+if distributed.rank() == 1:
+    time.sleep(10 * timeout)  # alive, but it never reaches the exchange
+with distributed.watch("the test's exchange", iteration=7):
+    distributed.average(torch.ones(1))
+"""
+
+
+def test_a_rank_that_stops_answering_ends_the_run_within_the_timeout(tmp_path):
+    timeout = 2
+    environment = {
+        **os.environ,
+        "MASTER_ADDR": "127.0.0.1",
+        "MASTER_PORT": str(free_port()),
+        "WORLD_SIZE": str(WORLD_SIZE),
+        "OMP_NUM_THREADS": "1",
+    }
+    ranks = [
+        subprocess.Popen(
+            [sys.executable, "-c", STOPS_ANSWERING, str(timeout)],
+            env={**environment, "RANK": str(rank), "LOCAL_RANK": str(rank)},
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for rank in range(WORLD_SIZE)
+    ]
+    try:
+        _, stderr = ranks[0].communicate(timeout=120)
+    finally:
+        ranks[1].kill()
+        ranks[1].wait()
+    assert ranks[0].returncode == distributed.WATCHDOG_EXIT_CODE, stderr
+    message = re.search(
+        r"rank 0: the test's exchange in iteration 7 has waited (\d+) s "
+        r"for the other ranks, longer than run.collective_timeout_s=2: another rank stopped "
+        r"answering or died",
+        stderr,
+    )
+    assert message, stderr
+    # checked a few times per timeout; well before the process group's own, 30 s later
+    assert timeout <= int(message[1]) <= timeout + 2
+    assert "in average" in stderr  # the stack of the waiting thread follows
+
+
+DIES_IN_ITS_THIRD_ITERATION = """
+import os, runpy, sys
+from terrashift_rl.training import OnPolicyTrainer
+
+train_iteration = OnPolicyTrainer.train_iteration
+
+
+def dies_in_the_third(trainer):
+    if os.environ["RANK"] == "1" and trainer.iteration == 2:
+        os._exit(9)
+    return train_iteration(trainer)
+
+
+OnPolicyTrainer.train_iteration = dies_in_the_third
+sys.argv[0] = {recipe!r}
+runpy.run_path(sys.argv[0], run_name="__main__")
+"""
+
+
+@pytest.mark.slow
+def test_a_rank_that_dies_ends_the_run_and_leaves_the_last_checkpoint_whole(tmp_path):
+    script = tmp_path / "dies.py"
+    recipe = ROOT / "recipes" / "mapoca_pretrain.py"
+    script.write_text(DIES_IN_ITS_THIRD_ITERATION.format(recipe=str(recipe)))
+    start = time.monotonic()
+    run = torchrun(
+        script,
+        tmp_path,
+        f"run.total_env_steps={10 * WORLD_SIZE * FRAMES}",
+        "run.checkpoint_every=1",
+        "run.eval_every=null",
+        "run.collective_timeout_s=10",
+        "hydra.run.dir=run",
+    )
+    assert run.returncode != 0
+    # torchrun names the rank that failed first, and its exit status
+    assert re.search(r"rank\s*: 1 \(local_rank: 1\)\s+exitcode\s*: 9", run.stderr), run.stderr
+    assert time.monotonic() - start < 240
+    last = load_checkpoint(tmp_path / "run/checkpoints/last.pt")
+    assert last["env_steps"] == 2 * WORLD_SIZE * FRAMES and last["world_size"] == WORLD_SIZE
 
 
 def test_without_a_process_group_the_helpers_change_nothing():

@@ -1,0 +1,255 @@
+"""Time to goal: how long the pretraining recipe takes to sort, seed by seed.
+
+Runs the recipe (``python recipes/mapoca_pretrain.py``, its defaults plus ``--overrides``) once
+per seed for ``--minutes`` each, evaluating every ``--eval-every`` iterations (evaluation mode,
+``run.eval_episodes`` episodes on the same scenes each time), logging to CSV. Seeds run side by
+side, one per GPU (``CUDA_VISIBLE_DEVICES``; with ``--processes N``, each seed data-parallel on N
+GPUs under torchrun), as many at a time as the host has GPUs for, else one after another.
+
+Per seed, from the run's logs:
+
+- for each threshold (``--thresholds``, 0.95 and 0.90): the training seconds and env-steps at the
+  first evaluation whose goal fraction reaches it (null if none did). Training seconds are the
+  recipe's ``run_seconds`` (wall clock since its loop began: collection, updates, checkpoints)
+  less the seconds of the evaluations before: evaluation is reported, not counted;
+- ``evaluation_seconds``, all evaluations together;
+- ``env_steps_per_s``: env-steps over training seconds, end to end; and the medians over the
+  iterations of the collection, value-estimation and epoch seconds (``collection_seconds``,
+  ``estimation_seconds``, ``epochs_seconds``), which with ``iteration_seconds`` give the split;
+- ``final_goal_fraction``: the last evaluation's; ``launch_seconds``: the process's wall clock.
+
+The JSON holds ``device``, ``date``, ``command``, ``seeds`` (one entry per seed), the medians over
+seeds ``env_steps_per_s`` and ``median_seconds_to_goal`` (to the first threshold; null unless
+more than half the seeds reached it) and prints a table.
+
+    python benchmarks/time_to_goal.py --seeds 7 8 9 10 --minutes 8
+    python benchmarks/time_to_goal.py --seeds 7 --processes 4 --minutes 4   # 4 GPUs, one seed
+    python benchmarks/time_to_goal.py --smoke --seeds 0 1 --thresholds 0  # CPU: a launch check
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import shlex
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from common import benchmark_parser, read_series, run_header, table_header, table_row, write_results
+
+ROOT = Path(__file__).resolve().parents[1]
+RECIPE = ROOT / "recipes" / "mapoca_pretrain.py"
+GOAL = "eval_goal_fraction"
+
+
+def recipe_command(seed: int, args: argparse.Namespace, run_dir: Path) -> list[str]:
+    """The command line that trains ``seed``."""
+    launcher = [sys.executable]
+    if args.processes > 1:
+        launcher += ["-m", "torch.distributed.run", "--standalone"]
+        launcher += [f"--nproc_per_node={args.processes}"]
+    settings = [f"run.seed={seed}", f"run.minutes={args.minutes}", "logger=csv"]
+    settings += [f"run.eval_every={args.eval_every}", "run.best_window=0"]
+    if args.smoke:
+        settings = ["--config-name", "smoke", *settings, "run.total_env_steps=1000000000"]
+    return [*launcher, str(RECIPE), *settings, *args.overrides, f"hydra.run.dir={run_dir}"]
+
+
+def summarize(seed: int, scalars: Path, thresholds: list[float], launch_seconds: float) -> dict:
+    """One seed's entry, from its CSV logs."""
+    eval_steps, goal_fractions = read_series(scalars, GOAL)
+    _, eval_seconds = read_series(scalars, "eval_seconds")
+    steps, run_seconds = read_series(scalars, "run_seconds")
+    _, rates = read_series(scalars, "env_steps_per_s")
+    _, collection_rates = read_series(scalars, "collection_steps_per_s")
+    _, update_seconds = read_series(scalars, "update_seconds")
+    _, estimation_seconds = read_series(scalars, "estimation_seconds")
+    if not steps or not eval_steps:
+        raise SystemExit(f"{scalars} holds no iterations or no evaluations")
+    # an in-loop evaluation runs after its iteration's run_seconds was taken: the seconds of
+    # the evaluations at earlier iterations are what to subtract
+    seconds_at = dict(zip(steps, run_seconds, strict=True))
+    evaluations = list(zip(eval_steps, goal_fractions, eval_seconds, strict=False))
+    in_loop = [e for e in evaluations if e[0] in seconds_at]
+    frames = steps[0]  # the env-steps of one iteration, every rank's
+
+    def training_seconds(step: float) -> float:
+        earlier = sum(seconds for at, _, seconds in in_loop if at < step)
+        return seconds_at[step] - earlier
+
+    to_goal = {}
+    for threshold in thresholds:
+        reached = next((e for e in in_loop if e[1] >= threshold), None)
+        to_goal[f"{threshold:g}"] = {
+            "seconds": None if reached is None else training_seconds(reached[0]),
+            "env_steps": None if reached is None else int(reached[0]),
+        }
+    last = steps[-1]
+    iteration_seconds = [frames / rate for rate in rates]
+    return {
+        "seed": seed,
+        "to_goal": to_goal,
+        "final_goal_fraction": goal_fractions[-1],
+        "evaluations": len(evaluations),
+        "evaluation_seconds": sum(eval_seconds),
+        "env_steps": int(last),
+        "training_seconds": training_seconds(last),
+        "env_steps_per_s": last / training_seconds(last),
+        "iteration_seconds": statistics.median(iteration_seconds),
+        "collection_seconds": statistics.median(frames / rate for rate in collection_rates),
+        "estimation_seconds": statistics.median(estimation_seconds),
+        "epochs_seconds": statistics.median(
+            update - estimation
+            for update, estimation in zip(update_seconds, estimation_seconds, strict=True)
+        ),
+        "launch_seconds": launch_seconds,
+    }
+
+
+def run_seeds(args: argparse.Namespace, folder: Path) -> list[dict]:
+    """Trains every seed, ``slots`` at a time, each on its own GPUs; returns their entries."""
+    gpus = torch.cuda.device_count() if not args.smoke else 0
+    slots = max(1, gpus // args.processes) if gpus else 1
+    pending, running, done = list(args.seeds), {}, []
+    free = list(range(slots))
+    while pending or running:
+        while pending and free:
+            seed, slot = pending.pop(0), free.pop(0)
+            run_dir = folder / f"seed_{seed}"
+            env = {"OMP_NUM_THREADS": "1", **os.environ}
+            if gpus:
+                first = slot * args.processes
+                env["CUDA_VISIBLE_DEVICES"] = ",".join(
+                    str(gpu) for gpu in range(first, first + args.processes)
+                )
+            log = (folder / f"seed_{seed}.log").open("w")
+            process = subprocess.Popen(
+                recipe_command(seed, args, run_dir),
+                cwd=folder,
+                env=env,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,  # torchrun's ranks are stopped with it on a timeout
+            )
+            running[seed] = (process, slot, time.perf_counter(), log, run_dir)
+        time.sleep(1.0)
+        for seed, (process, slot, start, log, run_dir) in list(running.items()):
+            elapsed = time.perf_counter() - start
+            if process.poll() is None and elapsed < 60 * args.minutes + args.grace:
+                continue
+            if process.returncode is None:
+                os.killpg(process.pid, 9)
+                process.wait()
+            log.close()
+            del running[seed]
+            free.append(slot)
+            tail = (folder / f"seed_{seed}.log").read_text()[-4000:]
+            if process.returncode != 0:
+                raise SystemExit(f"seed {seed} failed (status {process.returncode}):\n{tail}")
+            (scalars,) = run_dir.glob("logs/*/scalars")
+            done.append(summarize(seed, scalars, args.thresholds, elapsed))
+            print(table_row(table_cells(done[-1], args.thresholds)), flush=True)
+    return sorted(done, key=lambda entry: entry["seed"])
+
+
+def table_cells(entry: dict, thresholds: list[float]) -> list[str]:
+    """A seed's row of the printed table."""
+
+    def cell(value, spec: str) -> str:
+        return "-" if value is None else format(value, spec)
+
+    goals = [
+        f"{cell(entry['to_goal'][f'{t:g}']['seconds'], '.0f')} s, "
+        f"{cell(entry['to_goal'][f'{t:g}']['env_steps'], ',')}"
+        for t in thresholds
+    ]
+    split = (
+        f"{entry['collection_seconds']:.2f} / {entry['estimation_seconds']:.2f} / "
+        f"{entry['epochs_seconds']:.2f}"
+    )
+    return [
+        entry["seed"],
+        *goals,
+        f"{entry['final_goal_fraction']:.3f}",
+        f"{entry['env_steps_per_s']:,.0f}",
+        split,
+        f"{entry['evaluation_seconds']:.0f}",
+    ]
+
+
+def main() -> None:
+    parser = benchmark_parser(__doc__)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[7, 8, 9, 10])
+    parser.add_argument("--minutes", type=float, default=8.0, help="run.minutes of each seed")
+    parser.add_argument("--eval-every", type=int, default=10, help="iterations")
+    parser.add_argument("--thresholds", type=float, nargs="+", default=[0.95, 0.90])
+    parser.add_argument("--processes", type=int, default=1, help="GPUs per seed (torchrun)")
+    parser.add_argument("--smoke", action="store_true", help="the smoke config, on the CPU")
+    parser.add_argument(
+        "--grace", type=float, default=300.0, help="seconds past --minutes before a run is killed"
+    )
+    parser.add_argument(
+        "--overrides", nargs="+", default=[], metavar="KEY=VALUE", help="more recipe overrides"
+    )
+    parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--keep", type=Path, default=None, help="keep the runs' folders here")
+    args = parser.parse_args()
+    if args.minutes <= 0 or args.eval_every < 1 or args.processes < 1:
+        parser.error("--minutes must be > 0, --eval-every and --processes >= 1")
+    device = torch.device("cpu" if args.smoke else "cuda")
+    if device.type == "cuda" and torch.cuda.device_count() < args.processes:
+        parser.error(f"--processes {args.processes}, but this host has fewer CUDA devices")
+    if args.out is None:
+        name = "time_to_goal_smoke" if args.smoke else f"time_to_goal_{device.type}"
+        args.out = Path(__file__).parent / "results" / f"{name}.json"
+    header = run_header(device)
+    if args.processes > 1:
+        header["device"] = f"{args.processes} x {header['device']}"
+    example = recipe_command(args.seeds[0], args, Path("<run dir>"))
+    example = [
+        "python",
+        *(str(RECIPE.relative_to(ROOT)) if p == str(RECIPE) else p for p in example[1:]),
+    ]
+    print(f"time to goal: {header['device']}, {len(args.seeds)} seed(s) of {args.minutes:g} min")
+    print(f"each: {shlex.join(example)}")
+    goals = [f"to {t:g}: s, env-steps" for t in args.thresholds]
+    columns = ["seed", *goals, "final", "env-steps/s", "collect / estimate / epochs s", "eval s"]
+    print(table_header(columns))
+    with tempfile.TemporaryDirectory() as scratch:
+        folder = args.keep or Path(scratch)
+        folder.mkdir(parents=True, exist_ok=True)
+        seeds = run_seeds(args, folder.resolve())
+    goal = f"{args.thresholds[0]:g}"
+    reached = sorted(
+        math.inf if s["to_goal"][goal]["seconds"] is None else s["to_goal"][goal]["seconds"]
+        for s in seeds
+    )
+    median = statistics.median(reached)
+    payload = {
+        **header,
+        "recipe_command": shlex.join(example),
+        "minutes": args.minutes,
+        "eval_every": args.eval_every,
+        "thresholds": args.thresholds,
+        "processes": args.processes,
+        "seeds": seeds,
+        "env_steps_per_s": statistics.median(s["env_steps_per_s"] for s in seeds),
+        "median_seconds_to_goal": None if median == math.inf else median,
+        "seeds_at_goal": sum(value != math.inf for value in reached),
+    }
+    write_results(args.out, payload)
+    seconds = "not reached" if median == math.inf else f"{median:.0f} s"
+    print(
+        f"median over {len(seeds)} seed(s): {payload['env_steps_per_s']:,.0f} env-steps/s, "
+        f"{seconds} to {goal} ({payload['seeds_at_goal']} seed(s) reached it); wrote {args.out}"
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,62 @@
+"""time_to_goal.py: a seed's time to a goal fraction from its logs, evaluation time not counted;
+the smoke launch end to end."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
+
+from time_to_goal import summarize  # noqa: E402
+
+SCRIPT = Path(__file__).parents[2] / "benchmarks" / "time_to_goal.py"
+
+
+def write_series(folder: Path, metric: str, rows: list[tuple[float, float]]) -> None:
+    (folder / f"{metric}.csv").write_text("".join(f"{step},{value}\n" for step, value in rows))
+
+
+def test_seconds_to_goal_leave_out_the_evaluations_before(tmp_path):
+    # four iterations of 100 env-steps, 10 s each, with an evaluation of 5 s after the 2nd and
+    # the 4th: the loop's clock reads 10, 20, 35, 45 s when each iteration ends
+    steps = [100, 200, 300, 400]
+    clock = [10.0, 20.0, 35.0, 45.0]
+    write_series(tmp_path, "run_seconds", list(zip(steps, clock, strict=True)))
+    write_series(tmp_path, "eval_goal_fraction", [(200, 0.92), (400, 0.96)])
+    write_series(tmp_path, "eval_seconds", [(200, 5.0), (400, 5.0)])
+    write_series(tmp_path, "env_steps_per_s", [(step, 10.0) for step in steps])
+    write_series(tmp_path, "collection_steps_per_s", [(step, 50.0) for step in steps])
+    write_series(tmp_path, "update_seconds", [(step, 8.0) for step in steps])
+    write_series(tmp_path, "estimation_seconds", [(step, 1.0) for step in steps])
+    entry = summarize(3, tmp_path, [0.95, 0.9, 0.99], launch_seconds=70.0)
+    assert entry["to_goal"]["0.9"] == {"seconds": 20.0, "env_steps": 200}
+    assert entry["to_goal"]["0.95"] == {"seconds": 40.0, "env_steps": 400}  # 45 less 5
+    assert entry["to_goal"]["0.99"] == {"seconds": None, "env_steps": None}
+    assert entry["evaluation_seconds"] == 10.0 and entry["evaluations"] == 2
+    assert entry["training_seconds"] == 40.0 and entry["env_steps_per_s"] == 10.0
+    assert entry["final_goal_fraction"] == 0.96
+    assert (entry["iteration_seconds"], entry["collection_seconds"]) == (10.0, 2.0)
+    assert (entry["estimation_seconds"], entry["epochs_seconds"]) == (1.0, 7.0)
+
+
+@pytest.mark.slow
+def test_the_smoke_setting_runs_two_seeds_on_the_cpu(tmp_path):
+    out = tmp_path / "time_to_goal.json"
+    command = [sys.executable, str(SCRIPT), "--smoke", "--seeds", "0", "1", "--minutes", "0.1"]
+    result = subprocess.run(
+        [*command, "--eval-every", "1", "--thresholds", "0", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr
+    payload = json.loads(out.read_text())
+    assert [seed["seed"] for seed in payload["seeds"]] == [0, 1]
+    # a goal fraction of at least 0 is reached at the first evaluation, after one iteration
+    frames = 4 * 8
+    assert all(seed["to_goal"]["0"]["env_steps"] == frames for seed in payload["seeds"])
+    assert payload["median_seconds_to_goal"] > 0 and payload["seeds_at_goal"] == 2
+    assert payload["env_steps_per_s"] > 0 and "mapoca_pretrain.py" in payload["recipe_command"]
