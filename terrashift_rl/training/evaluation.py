@@ -189,7 +189,9 @@ def evaluate_baselines(
 
     Each policy gets a fresh environment of :func:`evaluation_scene` and the same
     ``seed``, so all three face the same initial scenes (goals, first sphere, wavelets);
-    the random policy's generator is seeded with ``seed`` too.
+    the random policy's generator is seeded with ``seed`` too. The scene observes the object
+    sequence and renders no camera, whatever ``config`` says: the heuristic reads the
+    objects (the scenes are the same, the camera draws no random numbers).
 
     Args:
         config: the scene, played as :func:`evaluation_scene` with ``respawn``.
@@ -210,7 +212,11 @@ def evaluate_baselines(
         >>> sorted(scores), scores["zero"]["episodes"]
         (['heuristic', 'random', 'zero'], 2.0)
     """
-    config = evaluation_scene(config, respawn=respawn)
+    # the heuristic reads the objects whatever the scene's policy observes (a privileged view
+    # when that one learns from pixels); no baseline reads the camera
+    config = evaluation_scene(config, respawn=respawn).replace(
+        observe_objects=True, camera_resolution=0
+    )
     policies: dict[str, Policy] = {
         "random": RandomPolicy(seed=seed),
         "zero": ZeroPolicy(),
