@@ -65,27 +65,12 @@ def terrain_level(model: Model, z: float) -> float:
     return TERRAIN_LOW + (TERRAIN_HIGH - TERRAIN_LOW) * fraction
 
 
-@wp.kernel
-def render_camera(
-    model: Model,
-    height: wp.array3d(dtype=float),
-    goal_cell: wp.array2d(dtype=wp.vec2i),
-    active: wp.array2d(dtype=wp.int32),
-    position: wp.array2d(dtype=wp.vec3),
-    camera: wp.array4d(dtype=float),
-):
-    """Draws one pixel of the overhead image (see the module docstring for the rules).
-
-    Launch dim: [num_envs, R, R] as (env, row = y, column = x).
-    """
-    e, ry, rx = wp.tid()
-    step = 2.0 * model.half_platform / float(model.camera_resolution - 1)
-    x = -model.half_platform + float(rx) * step
-    y = -model.half_platform + float(ry) * step
-    top = surface_height(model, height, e, x, y)
-    level = float(0.0)
-    if top != MISS:
-        level = terrain_level(model, top)
+@wp.func
+def nearest_goal(
+    model: Model, goal_cell: wp.array2d(dtype=wp.vec2i), e: int, x: float, y: float
+) -> int:
+    """The goal whose column's centre is nearest (x, y) and closer than ``goal_radius``, the
+    lower index on a tie; -1 if none."""
     nearest = int(-1)
     nearest_d2 = model.goal_radius * model.goal_radius
     for c in range(model.num_goals):
@@ -96,8 +81,23 @@ def render_camera(
         if d2 < nearest_d2:
             nearest = c
             nearest_d2 = d2
-    if nearest >= 0:
-        level = marker_level(model.num_goals, nearest, 0)
+    return nearest
+
+
+@wp.func
+def front_sphere(
+    model: Model,
+    height: wp.array3d(dtype=float),
+    active: wp.array2d(dtype=wp.int32),
+    position: wp.array2d(dtype=wp.vec3),
+    e: int,
+    x: float,
+    y: float,
+) -> int:
+    """The active sphere a vertical ray at (x, y) meets first, above the columns' surface, the
+    lower index on a tie; -1 if none."""
+    top = surface_height(model, height, e, x, y)
+    front = int(-1)
     r2 = model.sphere_radius * model.sphere_radius
     for j in range(model.num_objects):
         if active[e, j] != 0:
@@ -107,5 +107,63 @@ def render_camera(
                 sphere_top = p[2] + wp.sqrt(r2 - d2)
                 if sphere_top > top:
                     top = sphere_top
-                    level = marker_level(model.num_goals, j % model.num_goals, 1)
-    camera[e, 0, ry, rx] = level
+                    front = j
+    return front
+
+
+@wp.func
+def rows_within(model: Model, centre: float, reach: float) -> wp.vec2i:
+    """First and last lattice rows (or columns) within ``reach`` [m] of ``centre`` [m],
+    widened to whole rows and clamped to the image."""
+    step = 2.0 * model.half_platform / float(model.camera_resolution - 1)
+    lo = int(wp.floor((centre - reach + model.half_platform) / step))
+    hi = int(wp.ceil((centre + reach + model.half_platform) / step))
+    return wp.vec2i(wp.max(lo, 0), wp.min(hi, model.camera_resolution - 1))
+
+
+@wp.kernel
+def render_camera(
+    model: Model,
+    height: wp.array3d(dtype=float),
+    goal_cell: wp.array2d(dtype=wp.vec2i),
+    active: wp.array2d(dtype=wp.int32),
+    position: wp.array2d(dtype=wp.vec3),
+    camera: wp.array4d(dtype=float),
+):
+    """Draws the overhead image (the module docstring's rules), a lattice column of pixels per
+    thread as the heightmap's rays are cast: the columns' surface first, then the goal regions
+    and the spheres that reach over the thread's column, each over its own rows only (most
+    reach over none), where it is what a ray from above meets first.
+
+    Launch dim: [num_envs, C] as (env, column = x).
+    """
+    e, cx = wp.tid()
+    step = 2.0 * model.half_platform / float(model.camera_resolution - 1)
+    x = -model.half_platform + float(cx) * step
+    for cy in range(model.camera_resolution):
+        y = -model.half_platform + float(cy) * step
+        top = surface_height(model, height, e, x, y)
+        level = float(0.0)
+        if top != MISS:
+            level = terrain_level(model, top)
+        camera[e, 0, cy, cx] = level
+
+    reach = model.goal_radius
+    for c in range(model.num_goals):
+        cell = goal_cell[e, c]
+        if wp.abs(x - column_center(model, cell[0])) < reach:
+            rows = rows_within(model, column_center(model, cell[1]), reach)
+            for cy in range(rows[0], rows[1] + 1):
+                y = -model.half_platform + float(cy) * step
+                if nearest_goal(model, goal_cell, e, x, y) == c:
+                    camera[e, 0, cy, cx] = marker_level(model.num_goals, c, 0)
+
+    reach = model.sphere_radius
+    for j in range(model.num_objects):
+        p = position[e, j]
+        if active[e, j] != 0 and wp.abs(x - p[0]) <= reach:
+            rows = rows_within(model, p[1], reach)
+            for cy in range(rows[0], rows[1] + 1):
+                y = -model.half_platform + float(cy) * step
+                if front_sphere(model, height, active, position, e, x, y) == j:
+                    camera[e, 0, cy, cx] = marker_level(model.num_goals, j % model.num_goals, 1)

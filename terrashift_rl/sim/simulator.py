@@ -353,7 +353,7 @@ class Simulator:
         if c:
             wp.launch(
                 camera.render_camera,
-                dim=(n, c, c),
+                dim=(n, c),
                 inputs=[
                     m,
                     d.column_height,
