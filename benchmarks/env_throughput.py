@@ -159,8 +159,8 @@ def main() -> None:
         camera_resolution=args.camera_resolution,
     )
     family = "" if args.actuator == "wavelets" else f"_{args.actuator}"
-    camera = f"_camera{config.camera_resolution}" if config.camera_resolution else ""
-    default_out = f"env_throughput_{device.type}{family}{camera}.json"
+    suffix = f"_camera{config.camera_resolution}" if config.camera_resolution else ""
+    default_out = f"env_throughput_{device.type}{family}{suffix}.json"
     out = args.out or Path(__file__).parent / "results" / default_out
     payload = {
         "benchmark": "env_throughput",

@@ -191,7 +191,8 @@ def evaluate_baselines(
     ``seed``, so all three face the same initial scenes (goals, first sphere, wavelets);
     the random policy's generator is seeded with ``seed`` too. The scene observes the object
     sequence and renders no camera, whatever ``config`` says: the heuristic reads the
-    objects (the scenes are the same, the camera draws no random numbers).
+    objects, a privileged view when the policy learns from pixels, and no baseline reads the
+    camera (the scenes are the same: the camera draws no random numbers).
 
     Args:
         config: the scene, played as :func:`evaluation_scene` with ``respawn``.
@@ -212,8 +213,6 @@ def evaluate_baselines(
         >>> sorted(scores), scores["zero"]["episodes"]
         (['heuristic', 'random', 'zero'], 2.0)
     """
-    # the heuristic reads the objects whatever the scene's policy observes (a privileged view
-    # when that one learns from pixels); no baseline reads the camera
     config = evaluation_scene(config, respawn=respawn).replace(
         observe_objects=True, camera_resolution=0
     )

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from test_observations import column_centres, column_surface
+from test_observations import column_centres, column_surface, pose_scene
 
 from terrashift_rl.sim import COLUMN_SHAPES, Simulator, TerraShiftConfig
 from terrashift_rl.sim.camera import MARKER_LOW, TERRAIN_HIGH, TERRAIN_LOW, camera_levels
@@ -107,22 +107,15 @@ def assert_camera_matches_state(sim: Simulator, env: int) -> np.ndarray:
     return expected
 
 
-def pose_scene(sim: Simulator, rng: np.random.Generator) -> None:
-    """Random columns and goals, and spheres: one on top, one sunk between the columns (its
-    rim hidden where they rise above it), one above everything, one inactive."""
+def pose_scene_with_goals(sim: Simulator, rng: np.random.Generator) -> None:
+    """The heightmap test's scene (random columns; spheres on top, sunk between the columns,
+    above everything, inactive) and goals on distinct random columns."""
+    pose_scene(sim, rng)
     cfg = sim.config
-    n, g = sim.num_envs, cfg.grid_size
-    heights = torch.as_tensor(
-        rng.uniform(-cfg.max_column_height, cfg.max_column_height, (n, g, g)), dtype=torch.float32
-    )
-    sim.view("column_height").copy_(heights)
-    sim.view("column_height_prev").copy_(heights)
-    sim.view("goal_cell").copy_(torch.as_tensor(rng.integers(2, g - 2, (n, cfg.num_goals, 2))))
-    xy = rng.uniform(-0.4, 0.4, (n, 4, 2))
-    z = np.broadcast_to([0.22, 0.13, 0.37, 0.25], (n, 4))
-    positions = np.concatenate([xy, z[..., None]], axis=-1)
-    sim.view("sphere_position").copy_(torch.as_tensor(positions, dtype=torch.float32))
-    sim.view("sphere_active").copy_(torch.tensor([1, 1, 1, 0]).expand(n, 4))
+    side = cfg.grid_size - 4
+    cells = [rng.choice(side * side, cfg.num_goals, replace=False) for _ in range(sim.num_envs)]
+    cells = np.stack([np.stack([index % side, index // side], -1) + 2 for index in cells])
+    sim.view("goal_cell").copy_(torch.as_tensor(cells))
 
 
 def showing(image: np.ndarray, level: float) -> np.ndarray:
@@ -142,7 +135,7 @@ def pixel(sim: Simulator, x: float, y: float) -> tuple[int, int]:
 @pytest.mark.parametrize("shape", COLUMN_SHAPES)
 def test_camera_matches_reference(shape):
     sim = make_sim(column_shape=shape)
-    pose_scene(sim, np.random.default_rng(SEED))
+    pose_scene_with_goals(sim, np.random.default_rng(SEED))
     sim.observe()
     levels = camera_levels(sim.config.num_goals)
     for env in range(sim.num_envs):
