@@ -56,6 +56,7 @@ def test_without_objects_the_observation_is_the_images_and_the_wavelets():
         "camera",
         "episode_goals",
         "episode_out_of_bounds",
+        "episode_surface_work",
     }
 
 
