@@ -1,7 +1,7 @@
 """Camera stage: an orthographic overhead greyscale image of every scene.
 
-The image ``camera`` [num_envs, 1, R, R] samples the same kind of lattice as the heightmap,
-R x R points spanning the platform edge to edge, rows along +y and columns along +x, so a
+The image ``camera`` [num_envs, 1, C, C] samples the same kind of lattice as the heightmap,
+C x C points spanning the platform edge to edge, rows along +y and columns along +x, so a
 camera and a heightmap of one resolution are aligned pixel for pixel. Each pixel is the first
 thing a vertical ray from above meets:
 
@@ -14,8 +14,8 @@ thing a vertical ray from above meets:
 
 Grey levels (:func:`camera_levels`): the platform is 0; a column top runs from
 ``TERRAIN_LOW`` at its lowest (``column_rest_top - max_column_height``) to ``TERRAIN_HIGH``
-at its highest, linearly in height; goals and spheres take the 2C levels spaced evenly over
-[``MARKER_LOW``, 1], C = ``num_goals`` colour pairs in order goal 0, sphere 0, goal 1, sphere 1
+at its highest, linearly in height; goals and spheres take the 2G levels spaced evenly over
+[``MARKER_LOW``, 1], G = ``num_goals`` colour pairs in order goal 0, sphere 0, goal 1, sphere 1
 and so on. Sphere j belongs to goal ``j mod num_goals``, so a sphere is one level step
 brighter than its own goal, and every level tells apart what it shows.
 """
