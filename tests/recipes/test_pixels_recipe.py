@@ -1,6 +1,7 @@
 """The pixels recipe: trains from the camera without the object sequence; a scene that lacks
 what the networks read, or a teacher without the objects, is refused at start-up."""
 
+import importlib.util
 import subprocess
 import sys
 from pathlib import Path
@@ -9,10 +10,11 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from terrashift_rl.training import load_checkpoint
-from terrashift_rl.training.run import register_config_schemas, run_training
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
-register_config_schemas()
+spec = importlib.util.spec_from_file_location("mapoca_pretrain", RECIPES / "mapoca_pretrain.py")
+pretrain = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(pretrain)  # registers the config schemas
 
 TINY = ["env=smoke", "model=small", "train=smoke", "logger=none", "run.device=cpu"]
 """The pixels recipe at the smoke config's sizes."""
@@ -60,4 +62,4 @@ def test_what_the_networks_read_must_be_observed(tmp_path, config, overrides, me
     with initialize_config_dir(config_dir=str(RECIPES / "configs"), version_base=None):
         cfg = compose(config_name=config, overrides=overrides)
     with pytest.raises(ValueError, match=message):
-        run_training(cfg, run_dir=tmp_path)
+        pretrain.train(cfg, run_dir=tmp_path)
