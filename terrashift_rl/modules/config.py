@@ -146,41 +146,6 @@ class TerraShiftModelConfig:
             )
         for channels, groups in zip(self.cnn_channels, self.cnn_groups, strict=True):
             if channels % groups:
-                raise ValueError(f"cnn_groups {groups} does not divide cnn_channels {channels}.")
-        if self.embed_dim % self.num_heads:
-            raise ValueError(f"num_heads {self.num_heads} does not divide embed_dim.")
-        if self.embed_dim % 4:
-            raise ValueError("embed_dim must be a multiple of 4 for the 2-D sin-cos code.")
-        if self.agent_id_dim % 2:
-            raise ValueError("agent_id_dim must be even (sine and cosine halves).")
-        if not self.swin_windows:
-            raise ValueError("swin_windows needs at least one stage.")
-        if not (
-            1
-            <= self.tokenizer_min_tokens
-            <= self.tokenizer_base_tokens
-            <= self.tokenizer_max_tokens
-        ):
-            raise ValueError(
-                "tokenizer budget must satisfy 1 <= min_tokens <= base_tokens <= max_tokens."
-            )
-        if self.gru_layers < 1:
-            raise ValueError("gru_layers must be at least 1.")
-        if self.min_concentration <= 0:
-            raise ValueError("min_concentration must be positive.")
-        if not self.action_range >= 1.0:
-            raise ValueError(
-                f"action_range must be >= 1 (below, the policy cannot reach the actuators' "
-                f"limits of +-1), got {self.action_range}."
-            )
-        if self.distribution not in DISTRIBUTIONS:
-            raise ValueError(
-                f"distribution must be one of {DISTRIBUTIONS}, got {self.distribution!r}."
-            )
-        if not (math.isfinite(self.initial_std) and self.initial_std > 0):
-            raise ValueError(f"initial_std must be a finite number > 0, got {self.initial_std}.")
-        for value in self.initial_action_mean:
-            if not (math.isfinite(value) and abs(value) < self.action_range):
                 raise ValueError(
                     f"model.cnn_groups must divide model.cnn_channels entry by entry, got "
                     f"{self.cnn_groups} for {self.cnn_channels}"
