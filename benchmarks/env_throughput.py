@@ -9,6 +9,12 @@ plumbing and resets). Prints a table and writes JSON (after every size).
     python benchmarks/env_throughput.py --device cuda --profile 65536
     python benchmarks/env_throughput.py --device cpu --num-envs 1 64 --seconds 2
     python benchmarks/env_throughput.py --device cuda --num-envs 65536 --actuator surface_flow
+    python benchmarks/env_throughput.py --device cuda --num-envs 65536 --camera-resolution 64 \
+        --profile
+
+``--camera-resolution R`` renders the overhead camera (R x R) at every step and writes its
+own JSON (``..._camera64.json``); its profile's ``render_camera`` line is the camera's share of
+a step.
 
 ``--profile N ...`` then adds, at each size N (each measured size if none is given), the GPU
 time and launch count of every kernel over eager (non-graph) steps, both ways of launching the
@@ -129,6 +135,9 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=2.0, help="timing window per size")
     parser.add_argument("--column-shape", default="ellipsoid")
     parser.add_argument("--actuator", default="wavelets", choices=sorted(ACTUATORS))
+    parser.add_argument(
+        "--camera-resolution", type=int, default=0, help="camera pixels per side (0: no camera)"
+    )
     parser.add_argument("--out", type=Path, default=None, help="JSON path (default by device)")
     parser.add_argument(
         "--profile",
@@ -144,10 +153,14 @@ def main() -> None:
     if profile_sizes and device.type != "cuda":
         parser.error("--profile times GPU kernels: it needs --device cuda")
     config = TerraShiftConfig.preset(
-        "pretrain", column_shape=args.column_shape, actuator=args.actuator
+        "pretrain",
+        column_shape=args.column_shape,
+        actuator=args.actuator,
+        camera_resolution=args.camera_resolution,
     )
     family = "" if args.actuator == "wavelets" else f"_{args.actuator}"
-    default_out = f"env_throughput_{device.type}{family}.json"
+    suffix = f"_camera{config.camera_resolution}" if config.camera_resolution else ""
+    default_out = f"env_throughput_{device.type}{family}{suffix}.json"
     out = args.out or Path(__file__).parent / "results" / default_out
     payload = {
         "benchmark": "env_throughput",
@@ -160,13 +173,15 @@ def main() -> None:
             "actuator": config.actuator,
             "substeps": config.substeps,
             "action_repeat": config.action_repeat,
+            "camera_resolution": config.camera_resolution,
         },
         "rows": [],
         "profiles": [],
     }
+    camera = f", {config.camera_resolution}^2 camera" if config.camera_resolution else ""
     print(
         f"TerraShift env throughput (env-steps/s), pretrain scene ({config.actuator}, "
-        f"{config.column_shape}), {payload['device']}"
+        f"{config.column_shape}{camera}), {payload['device']}"
     )
     print(
         table_header(["num_envs", "simulator", "substeps", "fused", "per substep", "TorchRL env"])

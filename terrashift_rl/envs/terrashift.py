@@ -32,6 +32,7 @@ class TerraShiftEnv(EnvBase):
     ``"heightmap"``                     [N, 1, R, R]         ray heights in [-1, 1], rows along +y
     ``"objects"``                       [N, M, 9]            sphere and goal positions, velocity
     ``"objects_mask"``                  [N, M] bool          True where the slot holds a sphere
+    ``"camera"``                        [N, 1, C, C]         overhead greyscale image in [0, 1]
     ``"episode_goals"``                 [N, 1] int64         goals reached since the reset
     ``"episode_out_of_bounds"``         [N, 1] int64         spheres lost since the reset
     ``"episode_surface_work"``          [N, 1]               the surface's work on the spheres [J]
@@ -39,6 +40,10 @@ class TerraShiftEnv(EnvBase):
     ``("agents", "reward")``            [N, K, 1]            the team reward, same for every agent
     ``done/terminated/truncated``       [N, 1], [N, K, 1]    at the root and under ``"agents"``
     ==================================  ===================  =======================================
+
+    ``"camera"`` is there only with ``camera_resolution`` C > 0 (``sim/camera.py`` gives its
+    grey levels); ``"objects"`` and ``"objects_mask"`` only with ``observe_objects`` (without
+    them no observation but the two images tells where a sphere or a goal is).
 
     ``truncated`` marks the step limit; ``terminated`` is only raised where nothing respawns
     (evaluation mode, ``respawn=False``, or the environments that ``respawn_fraction`` leaves
@@ -101,6 +106,8 @@ class TerraShiftEnv(EnvBase):
             num_agents=config.num_agents,
             num_objects=config.num_objects,
             heightmap_resolution=config.heightmap_resolution,
+            observe_objects=config.observe_objects,
+            camera_resolution=config.camera_resolution,
         )
 
     # --- EnvBase API ----------------------------------------------------------------------
@@ -198,12 +205,15 @@ class TerraShiftEnv(EnvBase):
         out = {
             GROUP: TensorDict(agents, batch_size=(n, k), device=self.device),
             "heightmap": sim.view("heightmap").clone(),
-            "objects": sim.view("object_features").clone(),
-            "objects_mask": sim.view("object_mask").clone(),
             "done": done,
             "terminated": terminated,
             "truncated": truncated,
         }
+        if self.config.observe_objects:
+            out["objects"] = sim.view("object_features").clone()
+            out["objects_mask"] = sim.view("object_mask").clone()
+        if self.config.camera_resolution:
+            out["camera"] = sim.view("camera").clone()
         for key in EVENT_KEYS:
             out[key] = sim.view(key).to(torch.int64).unsqueeze(-1)
         # counted with config.count_surface_work, else 0
@@ -212,11 +222,18 @@ class TerraShiftEnv(EnvBase):
 
 
 def set_specs(
-    env: EnvBase, *, num_agents: int, num_objects: int, heightmap_resolution: int
+    env: EnvBase,
+    *,
+    num_agents: int,
+    num_objects: int,
+    heightmap_resolution: int,
+    observe_objects: bool = True,
+    camera_resolution: int = 0,
 ) -> None:
     """Gives ``env`` (batch ``[N]``) the specs of the table in :class:`TerraShiftEnv`'s
     docstring for ``num_agents`` agents, ``num_objects`` object slots and a heightmap of
-    ``heightmap_resolution`` rays per side."""
+    ``heightmap_resolution`` rays per side; the object sequence only if ``observe_objects``, and
+    a ``camera_resolution``-pixel camera if it is not 0."""
     dev, n = env.device, env.batch_size[0]
     k, m, r = num_agents, num_objects, heightmap_resolution
 
@@ -226,19 +243,21 @@ def set_specs(
     def unit_box(*shape):
         return Bounded(-1.0, 1.0, shape=torch.Size(shape), dtype=torch.float32, device=dev)
 
-    env.observation_spec = Composite(
-        {
-            GROUP: Composite(
-                observation=unit_box(n, k, AGENT_FEATURES), mask=flag(n, k), shape=(n, k)
-            ),
-            "heightmap": unit_box(n, 1, r, r),
-            "objects": unit_box(n, m, OBJECT_FEATURES),
-            "objects_mask": flag(n, m),
-            **{key: Unbounded(shape=(n, 1), dtype=torch.int64, device=dev) for key in EVENT_KEYS},
-            "episode_surface_work": Unbounded(shape=(n, 1), device=dev),
-        },
-        shape=(n,),
-    )
+    observations = {
+        GROUP: Composite(observation=unit_box(n, k, AGENT_FEATURES), mask=flag(n, k), shape=(n, k)),
+        "heightmap": unit_box(n, 1, r, r),
+        **{key: Unbounded(shape=(n, 1), dtype=torch.int64, device=dev) for key in EVENT_KEYS},
+        "episode_surface_work": Unbounded(shape=(n, 1), device=dev),
+    }
+    if observe_objects:
+        observations["objects"] = unit_box(n, m, OBJECT_FEATURES)
+        observations["objects_mask"] = flag(n, m)
+    if camera_resolution:
+        c = camera_resolution
+        observations["camera"] = Bounded(
+            0.0, 1.0, shape=(n, 1, c, c), dtype=torch.float32, device=dev
+        )
+    env.observation_spec = Composite(observations, shape=(n,))
     env.action_spec = Composite(
         {GROUP: Composite(action=unit_box(n, k, ACTION_DIM), shape=(n, k))}, shape=(n,)
     )

@@ -71,6 +71,15 @@ class TerraShiftModelConfig:
 
     heightmap_channels: int = setting(1, at_least(1))
     """Channels of the heightmap observation (coordinate channels are added on top)."""
+    camera_channels: int = setting(0, at_least(0))
+    """Channels of the camera observation (``"camera"``), stacked on the heightmap's as further
+    inputs of the CNN stem (which then runs on the camera's pixel lattice); 0: no camera, 1
+    for TerraShift's greyscale camera (``camera_resolution`` > 0)."""
+    object_tokens: bool = setting(True)
+    """Read the object sequence (``"objects"``, ``"objects_mask"``) as a token set the agents
+    attend to; False for an environment with ``observe_objects=False``: the agents attend to
+    the spatial tokens alone, and the critics, which share the trunk, see no more than the
+    policy does."""
     cnn_channels: list[int] = setting([16, 32, 32], STAGES)
     """Output channels of the CNN stem's convolutions."""
     cnn_kernels: list[int] = setting([5, 3, 3], STAGES)

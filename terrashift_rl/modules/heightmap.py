@@ -20,6 +20,7 @@ __all__ = [
     "HeightmapEncoder",
     "PatchMerging",
     "WindowAttentionBlock",
+    "stack_camera",
 ]
 
 
@@ -177,8 +178,35 @@ def average_pool(features: Tensor, rows: int, cols: int) -> Tensor:
     return nn.functional.adaptive_avg_pool2d(features, (rows, cols))
 
 
+def stack_camera(heightmap: Tensor, camera: Tensor) -> Tensor:
+    """The heightmap [B, C, H, W] on the camera's pixel lattice [B, C', H', W'], with the camera
+    stacked on as further channels: [B, C + C', H', W'].
+
+    Both sample a lattice spanning the platform edge to edge, so bilinear interpolation with
+    aligned corners puts every heightmap ray where it is on the camera's lattice (at equal
+    sizes the heightmap is used as it is). The camera is never resampled: its grey levels are
+    codes, which blending would mix.
+
+    Examples:
+        >>> heightmap, camera = torch.randn(2, 1, 3, 3), torch.rand(2, 1, 5, 5)
+        >>> images = stack_camera(heightmap, camera)
+        >>> images.shape
+        torch.Size([2, 2, 5, 5])
+        >>> torch.equal(images[:, :1, ::2, ::2], heightmap), torch.equal(images[:, 1:], camera)
+        (True, True)
+    """
+    if heightmap.shape[-2:] != camera.shape[-2:]:
+        heightmap = nn.functional.interpolate(
+            heightmap, size=camera.shape[-2:], mode="bilinear", align_corners=True
+        )
+    return torch.cat([heightmap, camera.to(heightmap.dtype)], dim=-3)
+
+
 class HeightmapEncoder(nn.Module):
     """Turns heightmaps into a bounded set of spatial tokens (Algorithm 2, lines 2-18).
+
+    With ``camera_channels`` its input is the heightmap and the camera stacked by
+    :func:`stack_camera`: one stem sees heights and markers at the same pixels.
 
     Coordinate channels -> CNN stem (conv, GroupNorm, GELU per stage) -> adaptive average pool to
     a token grid -> 1 x 1 projection to d -> LayerNorm -> 2-D sin-cos position code -> windowed
@@ -202,7 +230,7 @@ class HeightmapEncoder(nn.Module):
     def __init__(self, config: TerraShiftModelConfig) -> None:
         super().__init__()
         stem: list[nn.Module] = []
-        in_channels = config.heightmap_channels + 2
+        in_channels = config.heightmap_channels + config.camera_channels + 2
         for channels, kernel, stride, groups in zip(
             config.cnn_channels,
             config.cnn_kernels,

@@ -15,6 +15,7 @@ __all__ = [
     "BASELINE",
     "BETA_CONCENTRATION0",
     "BETA_CONCENTRATION1",
+    "CAMERA",
     "HEIGHTMAP",
     "IS_INIT",
     "NEXT_RECURRENT_STATE",
@@ -28,6 +29,9 @@ __all__ = [
 
 HEIGHTMAP = "heightmap"
 """float32 [B, C, H, W] in [-1, 1]; read by the trunk."""
+CAMERA = "camera"
+"""float32 [B, C, H, W] in [0, 1], the overhead image; read by the trunk when its config has
+``camera_channels``."""
 OBJECTS = "objects"
 """float32 [B, M, 9]; read by the trunk."""
 OBJECTS_MASK = "objects_mask"

@@ -4,8 +4,9 @@
 parameters, same ``nn.Module``) and three heads. Keys read and written (* optional: a missing
 mask means all present, a missing recurrent state zeros at episode starts):
 
-- ``trunk`` reads ``heightmap``, ``objects``, ``objects_mask``*, ``("agents",
-  "observation")``, ``("agents", "mask")``*, ``("agents", "recurrent_state")``*, ``is_init``;
+- ``trunk`` reads ``heightmap``, ``camera`` (with ``camera_channels``), ``objects`` and
+  ``objects_mask``* (with ``object_tokens``), ``("agents", "observation")``, ``("agents",
+  "mask")``*, ``("agents", "recurrent_state")``*, ``is_init``;
   writes ``("agents", "embedding")`` [B, K, d] and ``("next", "agents", "recurrent_state")``
   [B, K, L, d].
 - ``actor`` (trunk + ``policy_head`` + :class:`ScaledBeta`, a torchrl ``ProbabilisticActor``) reads
@@ -167,7 +168,7 @@ class TerraShiftNetworks(nn.Module):
         network = self.trunk.network
         stages = [
             network.heightmap_encoder,
-            network.object_encoder,
+            *([network.object_encoder] if network.object_encoder is not None else []),
             network.agent_encoder,
             *network.layers,
             network.final_norm,

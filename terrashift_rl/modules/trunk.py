@@ -33,7 +33,7 @@ from torchrl.modules import recurrent_mode
 from terrashift_rl.modules import keys
 from terrashift_rl.modules.config import TerraShiftModelConfig
 from terrashift_rl.modules.entities import AgentEncoder, ObjectEncoder
-from terrashift_rl.modules.heightmap import HeightmapEncoder
+from terrashift_rl.modules.heightmap import HeightmapEncoder, stack_camera
 from terrashift_rl.modules.layers import MultiHeadAttention, UpdateDropout, feed_forward
 
 __all__ = [
@@ -49,7 +49,8 @@ class ParallelCrossAttention(nn.Module):
     """Agents attend to several token sets at once; a learned softmax gate mixes the results.
 
     Each set has its own attention and a scalar gate logit computed from what each agent read in
-    that set. Sets an environment has no valid token in (e.g. no active object) get no weight.
+    that set (a single set has no gate). Sets an environment has no valid token in (e.g. no
+    active object) get no weight.
     A set is shared by all agents ([B, N, d], mask [B, N]) or holds each agent's own tokens
     ([B, K, N, d], mask [B, 1, N] or [B, K, N]).
 
@@ -71,27 +72,33 @@ class ParallelCrossAttention(nn.Module):
         self.attentions = nn.ModuleList(
             MultiHeadAttention(embed_dim, num_heads) for _ in range(num_sets)
         )
-        self.gates = nn.ModuleList(nn.Linear(embed_dim, 1) for _ in range(num_sets))
+        # one set has nothing to be mixed with: no gate
+        self.gates = nn.ModuleList(
+            nn.Linear(embed_dim, 1) for _ in range(num_sets if num_sets > 1 else 0)
+        )
 
     def forward(
         self, agents: Tensor, token_sets: list[Tensor], token_masks: list[Tensor | None]
     ) -> Tensor:
         """Fuse agents [B, K, d] with each set [B, N_s, d] or [B, K, N_s, d] (mask or None)."""
         attended = []
-        gate_logits = []
-        for attention, gate, tokens, mask in zip(
-            self.attentions, self.gates, token_sets, token_masks, strict=True
-        ):
+        empties = []
+        for attention, tokens, mask in zip(self.attentions, token_sets, token_masks, strict=True):
             if tokens.dim() > agents.dim():  # each agent's own set: one query per agent
                 read = attention(agents.unsqueeze(-2), tokens, mask).squeeze(-2)
                 empty = None if mask is None else ~mask.any(-1)[..., None]  # [B, 1 or K, 1]
             else:
                 read = attention(agents, tokens, mask)
                 empty = None if mask is None else ~mask.any(-1)[..., None, None]  # [B, 1, 1]
+            attended.append(read)
+            empties.append(empty)
+        if not self.gates:
+            return attended[0]
+        gate_logits = []
+        for gate, read, empty in zip(self.gates, attended, empties, strict=True):
             logit = gate(read)
             if empty is not None:
                 logit = logit.masked_fill(empty, float("-inf"))
-            attended.append(read)
             gate_logits.append(logit)
         weights = torch.softmax(torch.cat(gate_logits, dim=-1), dim=-1)
         return (torch.stack(attended, dim=-1) * weights.unsqueeze(-2)).sum(-1)
@@ -115,7 +122,9 @@ class TrunkLayer(nn.Module):
         super().__init__()
         dim = config.embed_dim
         self.cross_attention_norm = nn.LayerNorm(dim)
-        self.cross_attention = ParallelCrossAttention(dim, config.num_heads, num_sets=2)
+        self.cross_attention = ParallelCrossAttention(
+            dim, config.num_heads, num_sets=2 if config.object_tokens else 1
+        )
         self.self_attention_norm = nn.LayerNorm(dim)
         self.self_attention = MultiHeadAttention(dim, config.num_heads)
         self.feed_forward_norm = nn.LayerNorm(dim)
@@ -199,7 +208,9 @@ class SharedEmbeddingNetwork(nn.Module):
     """Tensor-level trunk: heightmap, objects and agents -> per-agent embeddings and GRU state.
 
     Heightmap encoder and object encoder produce the spatial and object token sets once per
-    environment step (the object set once per agent with ``relative_objects``); the agent
+    environment step (the object set once per agent with ``relative_objects``; none without
+    ``object_tokens``; with ``camera_channels`` the heightmap encoder reads the camera as
+    further channels, see :func:`~terrashift_rl.modules.heightmap.stack_camera`); the agent
     encoder gives the agent queries; ``trunk_layers`` layers of
     parallel cross-attention (agents -> both sets, softmax-gated), agent self-attention and a
     feed-forward block follow; then a final LayerNorm, an MLP (d -> 192 -> d) and the GRU memory.
@@ -221,7 +232,8 @@ class SharedEmbeddingNetwork(nn.Module):
         self.embed_dim = config.embed_dim
         self.gru_layers = config.gru_layers
         self.heightmap_encoder = HeightmapEncoder(config)
-        self.object_encoder = ObjectEncoder(config)
+        self.object_encoder = ObjectEncoder(config) if config.object_tokens else None
+        self.camera_channels = config.camera_channels
         self.agent_encoder = AgentEncoder(config)
         self.layers = nn.ModuleList(TrunkLayer(config) for _ in range(config.trunk_layers))
         self.final_norm = nn.LayerNorm(config.embed_dim)
@@ -235,26 +247,29 @@ class SharedEmbeddingNetwork(nn.Module):
     def forward(
         self,
         heightmap: Tensor,
-        objects: Tensor,
+        objects: Tensor | None,
         agent_observation: Tensor,
         objects_mask: Tensor | None = None,
         agent_mask: Tensor | None = None,
         recurrent_state: Tensor | None = None,
         is_init: Tensor | None = None,
         *,
+        camera: Tensor | None = None,
         sequence: bool = False,
     ) -> tuple[Tensor, Tensor]:
         """Embed a batch of environment steps.
 
         Args:
             heightmap: [*B, C, H, W].
-            objects: [*B, M, F].
+            objects: [*B, M, F]; None (and unread) without ``object_tokens``.
             agent_observation: [*B, K, 9]; its leading dims define the batch dims B.
             objects_mask: bool [*B, M], True for active slots; None means all active.
             agent_mask: bool [*B, K], True for present agents; None means all present.
             recurrent_state: GRU state before each step [*B, K, L, d]; None means zeros. With
                 ``sequence=True`` only the first step's entry of each sequence is used.
             is_init: bool [*B, 1], True at episode starts (state zeroed); None means no reset.
+            camera: [*B, C', H', W'] in [0, 1], required with ``camera_channels`` (and unread
+                without).
             sequence: whether the last batch dim is time (recurrent mode).
 
         Returns:
@@ -266,21 +281,27 @@ class SharedEmbeddingNetwork(nn.Module):
         flat = batch_shape.numel()
         rows = flat // steps
 
-        spatial_tokens = self.heightmap_encoder(heightmap.reshape(flat, *heightmap.shape[-3:]))
-        objects_flat = objects.reshape(flat, *objects.shape[-2:])
-        if objects_mask is not None:
-            objects_mask = objects_mask.reshape(flat, -1)
+        images = heightmap.reshape(flat, *heightmap.shape[-3:])
+        if self.camera_channels:
+            if camera is None:
+                raise ValueError("this trunk has camera_channels but was given no camera")
+            images = stack_camera(images, camera.reshape(flat, *camera.shape[-3:]))
+        token_sets, token_masks = [self.heightmap_encoder(images)], [None]
         agent_observation = agent_observation.reshape(flat, num_agents, -1)
-        object_tokens = self.object_encoder(objects_flat, objects_mask, agent_observation)
-        if objects_mask is not None and object_tokens.dim() == 4:  # per-agent tokens
-            objects_mask = objects_mask.unsqueeze(-2)
+        if self.object_encoder is not None:
+            objects_flat = objects.reshape(flat, *objects.shape[-2:])
+            if objects_mask is not None:
+                objects_mask = objects_mask.reshape(flat, -1)
+            object_tokens = self.object_encoder(objects_flat, objects_mask, agent_observation)
+            if objects_mask is not None and object_tokens.dim() == 4:  # per-agent tokens
+                objects_mask = objects_mask.unsqueeze(-2)
+            token_sets.append(object_tokens)
+            token_masks.append(objects_mask)
         if agent_mask is not None:
             agent_mask = agent_mask.reshape(flat, num_agents)
         agents = self.agent_encoder(agent_observation)
         for layer in self.layers:
-            agents = layer(
-                agents, [spatial_tokens, object_tokens], [None, objects_mask], agent_mask
-            )
+            agents = layer(agents, token_sets, token_masks, agent_mask)
         agents = self.output_mlp(self.final_norm(agents))
 
         # Fold agents into the GRU batch: rows of one agent over the T steps of a sequence.
@@ -323,7 +344,8 @@ class SharedEmbeddingNetwork(nn.Module):
 class TerraShiftTrunk(TensorDictModuleBase):
     """TensorDict wrapper of :class:`SharedEmbeddingNetwork` with torchrl's recurrent conventions.
 
-    Reads ``"heightmap"``, ``"objects"``, ``"objects_mask"`` (optional), ``("agents",
+    Reads ``"heightmap"``, ``"camera"`` (with ``camera_channels``), ``"objects"`` and
+    ``"objects_mask"`` (optional; both only with ``object_tokens``), ``("agents",
     "observation")``, ``("agents", "mask")`` (optional), ``("agents", "recurrent_state")``
     (optional: zeros) and ``"is_init"`` (required whenever a recurrent state is present).
     Writes ``("agents", "embedding")`` [B, K, d] and ``("next", "agents", "recurrent_state")``
@@ -354,8 +376,8 @@ class TerraShiftTrunk(TensorDictModuleBase):
         self.network = SharedEmbeddingNetwork(config)
         self.in_keys = [
             keys.HEIGHTMAP,
-            keys.OBJECTS,
-            keys.OBJECTS_MASK,
+            *([keys.CAMERA] if config.camera_channels else []),
+            *([keys.OBJECTS, keys.OBJECTS_MASK] if config.object_tokens else []),
             keys.AGENT_OBSERVATION,
             keys.AGENT_MASK,
             keys.RECURRENT_STATE,
@@ -382,14 +404,16 @@ class TerraShiftTrunk(TensorDictModuleBase):
                     "make_tensordict_primer(num_agents) after InitTracker in the environment's "
                     "transforms so the GRU state is carried from step to step."
                 )
-        embedding, next_state = self.network(
+        network = self.network
+        embedding, next_state = network(
             tensordict.get(keys.HEIGHTMAP),
-            tensordict.get(keys.OBJECTS),
+            tensordict.get(keys.OBJECTS) if network.object_encoder is not None else None,
             tensordict.get(keys.AGENT_OBSERVATION),
             objects_mask=tensordict.get(keys.OBJECTS_MASK, None),
             agent_mask=tensordict.get(keys.AGENT_MASK, None),
             recurrent_state=recurrent_state,
             is_init=is_init,
+            camera=tensordict.get(keys.CAMERA) if network.camera_channels else None,
             sequence=sequence,
         )
         tensordict.set(keys.AGENT_EMBEDDING, embedding)

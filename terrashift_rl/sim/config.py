@@ -17,6 +17,9 @@ from typing import Any
 COLUMN_SHAPES = ("ellipsoid", "box", "smooth")
 """Column shapes: ellipsoids (the paper's), boxes (classic pins), a smooth interpolated surface."""
 
+MAX_CAMERA_RESOLUTION = 256
+"""Largest camera image side [pixels]: 65,536 environments at 256 x 256 already hold 16 GiB."""
+
 ACTION_MODES = ("delta", "target", "position", "shape")
 """What an action sets: the change of each wavelet quantity (the paper's), its target value,
 the wavelet's target position (and the change of the rest), or the change of the rates and the
@@ -248,6 +251,13 @@ class TerraShiftConfig:
     """Ray heights are clipped to [0, heightmap_max_height] and mapped to [-1, 1] [m], > 0."""
     max_object_speed: float = 1.0
     """Sphere velocity components are clipped to +-this, then divided by it [m/s], > 0."""
+    camera_resolution: int = 0
+    """Pixels per side of the overhead greyscale camera image at ``"camera"``, sampled on a
+    lattice spanning the platform edge to edge like the heightmap's (``sim/camera.py`` gives
+    the encoding) [count]; 0 turns the camera off, otherwise in [2, MAX_CAMERA_RESOLUTION]."""
+    observe_objects: bool = True
+    """Observe the object sequence (sphere and goal positions, velocities); False leaves the
+    heightmap, the camera and the wavelets' own parameters as the only observations."""
 
     def __post_init__(self) -> None:
         self.validate()
@@ -396,7 +406,17 @@ class TerraShiftConfig:
             "sphere_approach_scale",
         ):
             _check_float(self, name)
-        for name in ("wrap_edges", "respawn", "count_surface_work"):
+        resolution = self.camera_resolution
+        if (
+            isinstance(resolution, bool)
+            or not isinstance(resolution, int)
+            or not (resolution == 0 or 2 <= resolution <= MAX_CAMERA_RESOLUTION)
+        ):
+            raise ValueError(
+                f"camera_resolution must be 0 (no camera) or an integer in "
+                f"[2, {MAX_CAMERA_RESOLUTION}], got {resolution!r}"
+            )
+        for name in ("wrap_edges", "respawn", "count_surface_work", "observe_objects"):
             value = getattr(self, name)
             if not isinstance(value, bool):
                 raise ValueError(f"{name} must be true or false, got {value!r}")

@@ -24,6 +24,31 @@ def normalised_height(model: Model, z: float) -> float:
     return 2.0 * wp.clamp(z, 0.0, h) / h - 1.0
 
 
+@wp.func
+def surface_height(
+    model: Model, height: wp.array3d(dtype=float), e: int, x: float, y: float
+) -> float:
+    """Height [m] at which a vertical ray at (x, y) meets the columns' tops, MISS if it falls
+    between them onto the platform (ellipsoids leave gaps at the corners of their cells)."""
+    g = model.grid_size
+    ix = wp.clamp(int(wp.floor((x + model.half_platform) / model.cell_size)), 0, g - 1)
+    iy = wp.clamp(int(wp.floor((y + model.half_platform) / model.cell_size)), 0, g - 1)
+    z = float(MISS)
+    if model.column_shape == SHAPE_BOX:
+        z = column_top(model, height, height, e, iy, ix, 1.0)
+    elif model.column_shape == SHAPE_ELLIPSOID:
+        a = model.column_half_width
+        dx = x - column_center(model, ix)
+        dy = y - column_center(model, iy)
+        rho2 = (dx * dx + dy * dy) / (a * a)
+        if rho2 <= 1.0 + 1.0e-5:  # rays on the platform edge graze the outer columns
+            top = column_top(model, height, height, e, iy, ix, 1.0)
+            z = top - model.column_half_height * (1.0 - wp.sqrt(wp.max(1.0 - rho2, 0.0)))
+    else:
+        z = smooth_surface(model, height, height, e, x, y, 1.0)[0]
+    return z
+
+
 @wp.kernel
 def cast_heightmap(
     model: Model,
@@ -42,24 +67,9 @@ def cast_heightmap(
     e, rx = wp.tid()
     step = 2.0 * model.half_platform / float(model.heightmap_resolution - 1)
     x = -model.half_platform + float(rx) * step
-    g = model.grid_size
-    ix = wp.clamp(int(wp.floor((x + model.half_platform) / model.cell_size)), 0, g - 1)
-    dx = x - column_center(model, ix)
     for ry in range(model.heightmap_resolution):
         y = -model.half_platform + float(ry) * step
-        z = float(MISS)
-        iy = wp.clamp(int(wp.floor((y + model.half_platform) / model.cell_size)), 0, g - 1)
-        if model.column_shape == SHAPE_BOX:
-            z = column_top(model, height, height, e, iy, ix, 1.0)
-        elif model.column_shape == SHAPE_ELLIPSOID:
-            a = model.column_half_width
-            dy = y - column_center(model, iy)
-            rho2 = (dx * dx + dy * dy) / (a * a)
-            if rho2 <= 1.0 + 1.0e-5:  # rays on the platform edge graze the outer columns
-                top = column_top(model, height, height, e, iy, ix, 1.0)
-                z = top - model.column_half_height * (1.0 - wp.sqrt(wp.max(1.0 - rho2, 0.0)))
-        else:
-            z = smooth_surface(model, height, height, e, x, y, 1.0)[0]
+        z = surface_height(model, height, e, x, y)
         if z == MISS:
             heightmap[e, 0, ry, rx] = -1.0
         else:

@@ -13,18 +13,23 @@ from collections.abc import Iterator
 import torch
 import warp as wp
 
-from terrashift_rl.sim import actuators, events, observations, physics
+from terrashift_rl.sim import actuators, camera, events, observations, physics
 from terrashift_rl.sim.actuators import actuator_for
 from terrashift_rl.sim.config import TerraShiftConfig
 from terrashift_rl.sim.types import ACTION_DIM, Data, build_model
 
 wp.set_module_options({"enable_backward": False})  # nothing differentiates through it
 
-_KERNEL_MODULES = (physics, events, observations)
+_KERNEL_MODULES = (physics, events, observations, camera)
 _INT32_MAX = 2**31 - 1
 _RENAMED_ARRAYS = {"env_mask": "reset_mask"}
 """Earlier name -> name of the data arrays renamed since checkpoints were first written."""
-_ADDED_ARRAYS = {"approach_gap": -1.0, "sphere_approach_gap": -1.0, "surface_work": 0.0}
+_ADDED_ARRAYS = {
+    "approach_gap": -1.0,
+    "sphere_approach_gap": -1.0,
+    "surface_work": 0.0,
+    "camera": 0.0,
+}
 """Data arrays added since checkpoints were first written -> the value they load as from a
 checkpoint that lacks them."""
 
@@ -344,6 +349,20 @@ class Simulator:
             ],
         )
         self.actuator.launch_observe(self)
+        c = self.config.camera_resolution
+        if c:
+            wp.launch(
+                camera.render_camera,
+                dim=(n, c),
+                inputs=[
+                    m,
+                    d.column_height,
+                    d.goal_cell,
+                    d.sphere_active,
+                    d.sphere_position,
+                    d.camera,
+                ],
+            )
 
     # --- execution ------------------------------------------------------------------------
     @contextlib.contextmanager

@@ -105,6 +105,7 @@ class Model:
     heightmap_resolution: int
     heightmap_max_height: float
     max_object_speed: float
+    camera_resolution: int
 
 
 PHASES = (0.125, 0.375, 0.625, 0.875)
@@ -253,6 +254,7 @@ def build_model(config: TerraShiftConfig) -> Model:
     m.heightmap_resolution = config.heightmap_resolution
     m.heightmap_max_height = config.heightmap_max_height
     m.max_object_speed = config.max_object_speed
+    m.camera_resolution = config.camera_resolution
     return m
 
 
@@ -358,3 +360,7 @@ class Data:
         """True where the object slot holds an active sphere, shape [num_envs, M]."""
         self.agent_features = zeros((n, k, AGENT_FEATURES))
         """Normalised agent (patch) parameters in [-1, 1], shape [num_envs, K, 9]."""
+        c = config.camera_resolution
+        self.camera = zeros((n, 1, c, c))
+        """Overhead greyscale image in [0, 1], rows along y (``sim/camera.py``), shape
+        [num_envs, 1, C, C]; empty (C = 0) without a camera."""

@@ -191,7 +191,10 @@ def evaluate_baselines(
 
     Each policy gets a fresh environment of :func:`evaluation_scene` and the same
     ``seed``, so all three face the same initial scenes (goals, first sphere, wavelets);
-    the random policy's generator is seeded with ``seed`` too.
+    the random policy's generator is seeded with ``seed`` too. The scene observes the object
+    sequence and renders no camera, whatever ``config`` says: the heuristic reads the
+    objects, a privileged view when the policy learns from pixels, and no baseline reads the
+    camera (the scenes are the same: the camera draws no random numbers).
 
     Args:
         config: the scene, played as :func:`evaluation_scene` with ``respawn``.
@@ -212,7 +215,9 @@ def evaluate_baselines(
         >>> sorted(scores), scores["zero"]["episodes"]
         (['heuristic', 'random', 'zero'], 2.0)
     """
-    config = evaluation_scene(config, respawn=respawn)
+    config = evaluation_scene(config, respawn=respawn).replace(
+        observe_objects=True, camera_resolution=0
+    )
     policies: dict[str, Policy] = {
         "random": RandomPolicy(seed=seed),
         "zero": ZeroPolicy(),

@@ -65,7 +65,23 @@ def make_training_env(
     device: torch.device,
     seed: int,
 ) -> TransformedEnv:
-    """TerraShift with the transforms the recurrent policy needs: ``is_init`` and its state."""
+    """TerraShift with the transforms the recurrent policy needs: ``is_init`` and its state.
+
+    Refuses a scene that lacks an observation the networks read (the camera, the objects), or
+    renders a camera they do not read, naming the settings."""
+    model = networks.config
+    if model is not None:
+        if bool(model.camera_channels) != bool(env_config.camera_resolution):
+            raise ValueError(
+                f"model.camera_channels={model.camera_channels} but env.camera_resolution="
+                f"{env_config.camera_resolution}: the networks read a camera exactly when the "
+                "scene renders one (camera_channels=1 with camera_resolution > 0, or both 0)"
+            )
+        if model.object_tokens and not env_config.observe_objects:
+            raise ValueError(
+                "model.object_tokens=true reads the object sequence, which env.observe_objects="
+                "false leaves out: set model.object_tokens=false"
+            )
     base = TerraShiftEnv(env_config, num_envs=num_envs, device=device, seed=seed)
     primer = networks.make_tensordict_primer(env_config.num_agents)
     return TransformedEnv(base, Compose(InitTracker(), primer))
@@ -85,6 +101,12 @@ def make_trainer(
     (:class:`SimulatorState` if None; a curriculum's
     :class:`~terrashift_rl.training.curriculum.CurriculumHook`)."""
     config.validate()
+    teacher_coeff = getattr(config.loss, "teacher_coeff", 0.0)  # MA-POCA's alone
+    if teacher_coeff and not env.base_env.config.observe_objects:
+        raise ValueError(
+            f"loss.teacher_coeff={teacher_coeff}: the teacher reads the object sequence, "
+            "which env.observe_objects=false leaves out"
+        )
     # the estimation pass runs no bigger pieces than a training mini-batch: same memory bound
     max_batch = math.ceil(config.num_envs / config.minibatches)
     algorithm = config.loss.make(networks, max_batch=max_batch)

@@ -35,6 +35,52 @@ def test_check_env_specs(shape):
     check_env_specs(TerraShiftEnv(num_envs=N, seed=0, column_shape=shape))
 
 
+@pytest.mark.parametrize(("camera", "objects"), [(24, True), (24, False), (0, False)])
+def test_check_env_specs_with_a_camera_and_without_objects(camera, objects):
+    env = TerraShiftEnv(num_envs=N, seed=0, camera_resolution=camera, observe_objects=objects)
+    check_env_specs(env)
+    td = env.rollout(2)
+    assert ("camera" in td) == bool(camera)
+    assert ("objects" in td) == ("objects_mask" in td) == objects
+    if camera:
+        assert td["camera"].shape == (N, 2, 1, camera, camera)
+        assert td["camera"].min() >= 0.0 and td["camera"].max() <= 1.0
+
+
+def test_without_objects_the_observation_is_the_images_and_the_wavelets():
+    env = TerraShiftEnv(num_envs=N, seed=0, camera_resolution=16, observe_objects=False)
+    assert set(env.observation_spec.keys(True, True)) == {
+        (GROUP, "observation"),
+        (GROUP, "mask"),
+        "heightmap",
+        "camera",
+        "episode_goals",
+        "episode_out_of_bounds",
+        "episode_surface_work",
+    }
+
+
+@pytest.mark.parametrize("objects", [False, True])
+def test_sphere_positions_show_in_no_observation_but_the_images(objects):
+    env = TerraShiftEnv(num_envs=N, seed=0, camera_resolution=24, observe_objects=objects)
+    td = env.reset()
+    for action in random_actions(4, env):
+        td[GROUP, "action"] = action
+        td = env.step(td)["next"]
+    td[GROUP, "action"] = random_actions(1, env, seed=1)[0]
+    state = env.sim.state_dict()
+    seen = env.step(td.clone())["next"]
+    state["sphere_position"][..., 0] += 0.03  # every sphere 3 cm along x, nothing else
+    env.sim.load_state_dict(state)
+    moved = env.step(td.clone())["next"]
+    changed = {
+        key
+        for key in env.observation_spec.keys(True, True)
+        if not torch.equal(seen[key], moved[key])
+    }
+    assert changed == {"camera", "heightmap", *(["objects"] if objects else [])}
+
+
 def test_keys_and_shapes_follow_multi_agent_conventions():
     env = TerraShiftEnv(num_envs=N, seed=0)
     td = env.rollout(2)

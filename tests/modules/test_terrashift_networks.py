@@ -44,13 +44,11 @@ def test_heads_after_the_actor_equal_the_standalone_networks(networks, make_batc
     assert shared[keys.BASELINE].shape == (4, 8, 1)
 
 
-def test_gradients_reach_every_parameter_in_a_loss_pass(networks, make_batch):
-    # The loss-time flow on [N, T] sequences: the actor's distribution writes the embedding, the
-    # heads read it; one backward pass through the shared trunk and the GRU over time.
+def parameters_without_gradient(networks, data) -> list[str]:
+    """The loss-time flow on [N, T] sequences: the actor's distribution writes the embedding,
+    the heads read it; one backward pass through the shared trunk and the GRU over time.
+    Returns the names of the parameters no gradient reached."""
     networks.train()
-    data = make_batch((2, 3), num_agents=4, is_init=False)
-    data["is_init"][:, 0] = True
-    data["objects_mask"][..., -1] = False
     with set_recurrent_mode(True):
         dist = networks.actor.get_dist(data)
         networks.value_head(data)
@@ -62,12 +60,18 @@ def test_gradients_reach_every_parameter_in_a_loss_pass(networks, make_batch):
         + data[keys.BASELINE].square().mean()
     )
     loss.backward()
-    without_gradient = [
+    return [
         name
         for name, parameter in networks.named_parameters()
         if parameter.grad is None or parameter.grad.abs().sum() == 0
     ]
-    assert without_gradient == []
+
+
+def test_gradients_reach_every_parameter_in_a_loss_pass(networks, make_batch):
+    data = make_batch((2, 3), num_agents=4, is_init=False)
+    data["is_init"][:, 0] = True
+    data["objects_mask"][..., -1] = False
+    assert parameters_without_gradient(networks, data) == []
 
 
 @pytest.mark.parametrize(

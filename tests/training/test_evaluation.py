@@ -146,6 +146,14 @@ def test_evaluation_scores_the_reward_without_the_shaping_term(term):
     assert baselines["heuristic"] == plain
 
 
+def test_baselines_of_a_pixels_scene_read_the_objects_and_face_the_same_scenes():
+    n, seed, config = 3, 2, CFG.replace(max_episode_steps=24)
+    pixels = config.replace(camera_resolution=16, observe_objects=False)
+    assert evaluate_baselines(pixels, num_envs=n, seed=seed) == evaluate_baselines(
+        config, num_envs=n, seed=seed
+    )
+
+
 def test_heuristic_beats_random_and_zero():
     # measured (16 envs, 128 decisions, seed 0): goals per episode heuristic 2.56, random 0.0,
     # zero 0.0; mean reward per decision 0.28 vs -0.034 and -0.034

@@ -1,0 +1,65 @@
+"""The pixels recipe: trains from the camera without the object sequence; a scene that lacks
+what the networks read, or a teacher without the objects, is refused at start-up."""
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from terrashift_rl.training import load_checkpoint
+
+RECIPES = Path(__file__).resolve().parents[2] / "recipes"
+spec = importlib.util.spec_from_file_location("mapoca_pretrain", RECIPES / "mapoca_pretrain.py")
+pretrain = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(pretrain)  # registers the config schemas
+
+TINY = ["env=smoke", "model=small", "train=smoke", "logger=none", "run.device=cpu"]
+"""The pixels recipe at the smoke config's sizes."""
+
+
+@pytest.mark.slow
+def test_the_pixels_recipe_trains_from_the_camera_alone(tmp_path):
+    result = subprocess.run(
+        [
+            sys.executable,
+            str(RECIPES / "mapoca_pretrain.py"),
+            "--config-name",
+            "mapoca_pixels",
+            *TINY,
+            "env.camera_resolution=16",
+            "run.total_env_steps=64",
+            "run.eval_every=1",
+            "run.eval_episodes=2",
+            "hydra.run.dir=a",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr
+    checkpoint = load_checkpoint(tmp_path / "a/checkpoints/last.pt")
+    assert checkpoint["env_config"]["camera_resolution"] == 16
+    assert checkpoint["env_config"]["observe_objects"] is False
+    assert checkpoint["model_config"]["camera_channels"] == 1
+    assert checkpoint["model_config"]["object_tokens"] is False
+    assert not any("object_encoder" in name for name in checkpoint["networks"])
+
+
+@pytest.mark.parametrize(
+    ("config", "overrides", "message"),
+    [
+        ("smoke", ["env.camera_resolution=16"], "model.camera_channels=0 but env.camera_resol"),
+        ("mapoca_pixels", [*TINY, "env.camera_resolution=0"], "model.camera_channels=1 but env"),
+        ("mapoca_pixels", [*TINY, "model.object_tokens=true"], "model.object_tokens=true reads"),
+        ("mapoca_pixels", [*TINY, "loss.teacher_coeff=0.1"], "loss.teacher_coeff=0.1: the teach"),
+    ],
+)
+def test_what_the_networks_read_must_be_observed(tmp_path, config, overrides, message):
+    with initialize_config_dir(config_dir=str(RECIPES / "configs"), version_base=None):
+        cfg = compose(config_name=config, overrides=overrides)
+    with pytest.raises(ValueError, match=message):
+        pretrain.train(cfg, run_dir=tmp_path)
