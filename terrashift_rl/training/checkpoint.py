@@ -51,7 +51,14 @@ if TYPE_CHECKING:
 
 WEIGHTS_KEYS = ("networks", "env_config", "model_config", "env_steps")
 """What evaluate.py and finetuning read (:func:`weights_state`)."""
-RESUME_KEYS = (*WEIGHTS_KEYS, "optimizer", "train_config", "simulator", "carry")
+RESUME_KEYS = (
+    *WEIGHTS_KEYS,
+    "optimizer",
+    "train_config",
+    "simulator",
+    "carry",
+    "logger_run_id",
+)
 """What resuming reads besides (:func:`last_state`)."""
 EXECUTION_SETTINGS = ("bf16", "tf32", "compile", "cuda_graphs", "deterministic")
 """Training settings of how the networks execute, not what they learn: a run may resume with

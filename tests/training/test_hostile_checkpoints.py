@@ -63,6 +63,17 @@ def test_a_written_checkpoint_loads_with_its_settings_as_the_room_writes_them(tm
     assert all(torch.equal(loaded["networks"][k], v) for k, v in weights.items())
 
 
+def test_a_resume_checkpoint_without_an_entry_resuming_reads_is_refused_naming_it(
+    tmp_path, weights
+):
+    path = save_checkpoint(weights_checkpoint(weights), tmp_path / "last.pt")
+    with pytest.raises(ValueError) as error:
+        load_checkpoint(path, required=checkpoints.RESUME_KEYS)
+    message = str(error.value)
+    assert str(path) in message and "logger_run_id" in message and "optimizer" in message
+    assert len(message.splitlines()) == 1
+
+
 def test_a_list_nested_3000_deep_is_one_refusal_not_a_recursion_error(tmp_path):
     nested = []
     for _ in range(3000):
