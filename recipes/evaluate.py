@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 from pathlib import Path
 
 import hydra
@@ -31,11 +32,13 @@ from terrashift_rl.training.evaluation import (
     evaluate,
     evaluate_baselines,
     evaluation_scene,
+    headline,
 )
-from terrashift_rl.training.launch import resolve_device, size_for_the_machine
+from terrashift_rl.training.launch import resolve_device, shown, size_for_the_machine, start_warp
 from terrashift_rl.training.settings import EvaluateConfig, register_config_schemas
 
 register_config_schemas()
+log = logging.getLogger(Path(__file__).stem)
 
 
 @hydra.main(version_base=None, config_path="configs", config_name="evaluate")
@@ -43,6 +46,7 @@ def main(cfg: DictConfig) -> None:
     cfg = size_for_the_machine(cfg, device_key="device", defaults_key="cpu_defaults")
     settings = EvaluateConfig.of(cfg)  # every setting checked, naming a bad one
     device = resolve_device(settings.device, "device")
+    start_warp(device)
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     checkpoint = (
         load_checkpoint(settings.checkpoint, required=WEIGHTS_KEYS) if settings.checkpoint else None
@@ -64,16 +68,17 @@ def main(cfg: DictConfig) -> None:
         results["checkpoint"] = str(settings.checkpoint)
         results["checkpoint_env_steps"] = checkpoint["env_steps"]
         with torch.no_grad():
-            for name, exploration in (
-                ("deterministic", ExplorationType.DETERMINISTIC),
-                ("stochastic", ExplorationType.RANDOM),
+            for name, label, exploration in (
+                ("deterministic", "policy", ExplorationType.DETERMINISTIC),
+                ("stochastic", "policy (samples)", ExplorationType.RANDOM),
             ):
                 env = make_training_env(
                     scene, networks, num_envs=settings.episodes, device=device, seed=settings.seed
                 )
                 torch.manual_seed(settings.seed)  # the sampled actions draw from torch's generators
-                results[name] = evaluate(env, actor_policy(networks.actor, exploration))
-                print(f"policy ({name}): {results[name]}")
+                policy = actor_policy(networks.actor, exploration)
+                results[name] = evaluate(env, policy, progress=label)
+                log.info(f"{label}: {headline(results[name])}")
     if settings.baselines:
         results["baselines"] = evaluate_baselines(
             scene,
@@ -81,12 +86,13 @@ def main(cfg: DictConfig) -> None:
             device=device,
             seed=settings.seed,
             respawn=settings.respawn,
+            progress=True,
         )
         for name, metrics in results["baselines"].items():
-            print(f"baseline {name}: {metrics}")
+            log.info(f"baseline {name}: {headline(metrics)}")
     out = run_dir / "evaluation.json"
     out.write_text(json.dumps(results, indent=2))
-    print(f"wrote {out}")
+    log.info(f"wrote {shown(out)}")
 
     video = None
     if settings.video.steps > 0:
@@ -108,7 +114,7 @@ def main(cfg: DictConfig) -> None:
         video = save_video(
             frames, run_dir / f"rollout.{settings.video.format}", fps=settings.video.fps
         )
-        print(f"wrote {video}")
+        log.info(f"wrote {shown(video)}")
 
     if settings.wandb:
         import wandb
