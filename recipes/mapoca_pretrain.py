@@ -236,7 +236,9 @@ def train(
                     log_scalars(logger, final, trainer.env_steps)
         except KeyboardInterrupt:
             if main:
-                log.info(f"interrupted during {stop.activity}; {last} is the last checkpoint")
+                log.info(
+                    f"interrupted during {stop.activity}; {shown(last)} is the last checkpoint"
+                )
                 if resume_hint is not None and last.exists():
                     log.info(f"resume with: {resume_hint(last)}")
             raise SystemExit(130) from None
@@ -257,7 +259,7 @@ def train(
         minutes = (time.monotonic() - started) / 60
         log.info(
             f"{trainer.env_steps:,} env-steps in {trainer.iteration} iterations "
-            f"({minutes:.1f} minutes); checkpoint {last}"
+            f"({minutes:.1f} minutes); checkpoint {shown(last)}"
         )
         if resume_hint is not None and trainer.env_steps < run.total_env_steps:
             log.info(f"resume with: {resume_hint(last)}")

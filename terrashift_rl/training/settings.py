@@ -227,12 +227,13 @@ class RunConfig:
     """``auto`` (CUDA when present, else the CPU with ``cpu_defaults``), ``cpu``, ``cuda`` or
     ``cuda:<index>``."""
     cpu_defaults: list[str] = setting(
-        ["model=small", "train.num_envs=32", "run.eval_episodes=16"], OVERRIDES
+        ["model=small", "train.num_envs=32", "run.eval_episodes=16", "run.minutes=5"], OVERRIDES
     )
     """With ``device=auto`` and no CUDA device, these overrides size the run for a CPU (a first
-    iteration in seconds, under 1 GB), each unless the command line sets its key or group; a
-    run from a checkpoint (resume, pretrained) builds that checkpoint's model instead of
-    ``model=small``. ``device=cpu`` keeps the configured sizes."""
+    iteration in seconds, under 1 GB, five minutes of training), each unless the command line
+    sets its key or group; a run from a checkpoint (resume, pretrained) builds that
+    checkpoint's model instead of ``model=small``. ``device=cpu`` keeps the configured
+    sizes."""
     total_env_steps: int = setting(100_000_000, at_least(1))
     """Environment steps (decisions x environments) after which the run stops."""
     minutes: float | None = setting(None, above(0), null="no time limit")
@@ -338,9 +339,11 @@ class EvaluateConfig:
     device: str = setting("auto", DEVICE)
     """``auto`` (CUDA when present, else the CPU with ``cpu_defaults``), ``cpu``, ``cuda`` or
     ``cuda:<index>``."""
-    cpu_defaults: list[str] = setting(["episodes=64"], OVERRIDES)
+    cpu_defaults: list[str] = setting(
+        ["episodes=16", "video.steps=128", "video.every=4"], OVERRIDES
+    )
     """With ``device=auto`` and no CUDA device, these overrides apply unless the command line
-    sets their keys (a minute or two)."""
+    sets their keys: about a minute on two CPU cores."""
     seed: int = setting(1, SEED)
     """Seed of the scenes and the sampled actions."""
     video: VideoConfig = field(default_factory=VideoConfig)

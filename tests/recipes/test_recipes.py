@@ -286,13 +286,14 @@ without_cuda = pytest.mark.skipif(torch.cuda.is_available(), reason="needs a mac
     [
         (
             [],
-            "no CUDA device: a CPU-sized run (model=small train.num_envs=32 run.eval_episodes=16); "
+            "no CUDA device: a CPU-sized run (model=small train.num_envs=32 run.eval_episodes=16 "
+            "run.minutes=5); "
             "set run.device=cpu to keep the configured sizes",
             (32, 32, 16),
         ),
         (
             ["train=smoke", "model=table1"],
-            "no CUDA device: a CPU-sized run (run.eval_episodes=16); set run.device=cpu",
+            "no CUDA device: a CPU-sized run (run.eval_episodes=16 run.minutes=5); set run.device",
             (4, 128, 16),
         ),
         (["run.device=cpu", "train.num_envs=4", "train.minibatches=2"], None, (4, 64, 128)),
@@ -350,7 +351,8 @@ def test_without_cuda_finetuning_builds_the_network_of_its_checkpoint(tmp_path):
     result = run(*finetune, "hydra.run.dir=b", cwd=tmp_path, config_name=None)
     assert result.returncode == 0, result.stderr
     assert (
-        "no CUDA device: a CPU-sized run (train.num_envs=32 run.eval_episodes=16) with the model "
+        "no CUDA device: a CPU-sized run (train.num_envs=32 run.eval_episodes=16 run.minutes=5) "
+        "with the model "
         "of run.pretrained; set run.device=cpu to keep the configured sizes"
     ) in result.stdout
     saved = load_checkpoint(tmp_path / "a/checkpoints/last.pt")["model_config"]
@@ -392,8 +394,13 @@ def test_without_cuda_finetuning_builds_the_network_of_its_checkpoint(tmp_path):
 @pytest.mark.parametrize(
     ("overrides", "episodes", "line"),
     [
-        ([], 64, "no CUDA device: a CPU-sized run (episodes=64); set device=cpu to keep"),
-        (["episodes=3"], 3, "no CUDA device: running on the CPU with the configured sizes"),
+        (
+            [],
+            16,
+            "no CUDA device: a CPU-sized run (episodes=16 video.steps=128 video.every=4); set "
+            "device=cpu to keep",
+        ),
+        (["episodes=3"], 3, "no CUDA device: a CPU-sized run (video.every=4); set device=cpu"),
     ],
     ids=["configured", "episodes-given"],
 )
@@ -506,9 +513,9 @@ def test_ctrl_c_checkpoints_exits_in_seconds_and_prints_the_command_that_resumes
         f"run.resume={last.relative_to(tmp_path)}",
     ]
     # the printed command resumes it, in its run's folder (one more iteration here)
-    more = f"run.total_env_steps={stopped['env_steps'] + 1}"
+    more = [f"run.total_env_steps={stopped['env_steps'] + 1}", "run.eval_every=null"]
     resumed = subprocess.run(
-        [sys.executable, *resume[1:], more], cwd=tmp_path, capture_output=True, text=True
+        [sys.executable, *resume[1:], *more], cwd=tmp_path, capture_output=True, text=True
     )
     assert resumed.returncode == 0, resumed.stderr
     assert load_checkpoint(last)["iteration"] == stopped["iteration"] + 1
