@@ -397,8 +397,7 @@ def test_without_cuda_finetuning_builds_the_network_of_its_checkpoint(tmp_path):
         (
             [],
             16,
-            "no CUDA device: a CPU-sized run (episodes=16 video.steps=128 video.every=4); set "
-            "device=cpu to keep",
+            "no CUDA device: a CPU-sized run (episodes=16 video.every=4); set device=cpu to keep",
         ),
         (["episodes=3"], 3, "no CUDA device: a CPU-sized run (video.every=4); set device=cpu"),
     ],
