@@ -47,6 +47,8 @@ def main(cfg: DictConfig) -> None:
     settings = EvaluateConfig.of(cfg)  # every setting checked, naming a bad one
     device = resolve_device(settings.device, "device")
     start_warp(device)
+    if settings.threads is not None:
+        torch.set_num_threads(settings.threads)
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     checkpoint = (
         load_checkpoint(settings.checkpoint, required=WEIGHTS_KEYS) if settings.checkpoint else None

@@ -86,6 +86,8 @@ def train(
     run = settings.run
     device = resolve_device(run.device, "run.device")
     start_warp(device)
+    if run.threads is not None:
+        torch.set_num_threads(run.threads)
     configs = {
         "env_config": dataclasses.asdict(settings.env),
         "model_config": dataclasses.asdict(settings.model),

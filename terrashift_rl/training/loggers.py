@@ -66,7 +66,7 @@ def close_logger(logger: Logger | None) -> None:
     if finish is None:
         return
     finish()
-    if experiment.settings.mode == "offline":
+    if experiment.offline:
         folder = os.path.relpath(experiment.settings.sync_dir)
         log.info(f"wandb: offline run in {folder} (`wandb sync {folder}` uploads it)")
     else:

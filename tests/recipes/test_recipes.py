@@ -287,13 +287,13 @@ without_cuda = pytest.mark.skipif(torch.cuda.is_available(), reason="needs a mac
         (
             [],
             "no CUDA device: a CPU-sized run (model=small train.num_envs=32 run.eval_episodes=16 "
-            "run.minutes=5); "
+            "run.minutes=5 run.threads=1); "
             "set run.device=cpu to keep the configured sizes",
             (32, 32, 16),
         ),
         (
             ["train=smoke", "model=table1"],
-            "no CUDA device: a CPU-sized run (run.eval_episodes=16 run.minutes=5); set run.device",
+            "no CUDA device: a CPU-sized run (run.eval_episodes=16 run.minutes=5 run.threads=1)",
             (4, 128, 16),
         ),
         (["run.device=cpu", "train.num_envs=4", "train.minibatches=2"], None, (4, 64, 128)),
@@ -351,8 +351,8 @@ def test_without_cuda_finetuning_builds_the_network_of_its_checkpoint(tmp_path):
     result = run(*finetune, "hydra.run.dir=b", cwd=tmp_path, config_name=None)
     assert result.returncode == 0, result.stderr
     assert (
-        "no CUDA device: a CPU-sized run (train.num_envs=32 run.eval_episodes=16 run.minutes=5) "
-        "with the model "
+        "no CUDA device: a CPU-sized run (train.num_envs=32 run.eval_episodes=16 run.minutes=5 "
+        "run.threads=1) with the model "
         "of run.pretrained; set run.device=cpu to keep the configured sizes"
     ) in result.stdout
     saved = load_checkpoint(tmp_path / "a/checkpoints/last.pt")["model_config"]
@@ -397,9 +397,13 @@ def test_without_cuda_finetuning_builds_the_network_of_its_checkpoint(tmp_path):
         (
             [],
             16,
-            "no CUDA device: a CPU-sized run (episodes=16 video.every=4); set device=cpu to keep",
+            "no CUDA device: a CPU-sized run (episodes=16 video.every=4 threads=1); set device=cpu",
         ),
-        (["episodes=3"], 3, "no CUDA device: a CPU-sized run (video.every=4); set device=cpu"),
+        (
+            ["episodes=3"],
+            3,
+            "no CUDA device: a CPU-sized run (video.every=4 threads=1); set device=cpu",
+        ),
     ],
     ids=["configured", "episodes-given"],
 )
