@@ -175,7 +175,7 @@ def train(
         limit = "" if run.minutes is None else f" or {run.minutes:g} minutes, whichever is first"
         log.info(f"{run.name}: {planned:,} env-steps{limit}; checkpoints in {shown(checkpoints)}")
     progress = tqdm(
-        total=planned,
+        total=planned if deadline is None else None,  # known after the first iteration
         initial=trainer.env_steps,
         unit="step",
         unit_scale=True,
