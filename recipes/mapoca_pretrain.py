@@ -19,7 +19,9 @@ Started by ``torchrun``, each process joins the process group (unless it is in i
 it stays), trains data-parallel on its own device with seed ``run.seed + rank``
 (:mod:`terrashift_rl.training.distributed`) and leaves the group at the end; rank 0 alone logs,
 shows progress and writes files. SIGINT or SIGTERM stops after the running iteration with a
-checkpoint.
+checkpoint, without the final evaluation, and prints the command that resumes the run; the
+resumed run goes on in the same folder (the config's ``hydra.run.dir``). Messages go through
+Python's logging, which Hydra sends to the terminal and to ``<run dir>/<recipe>.log``.
 """
 
 from __future__ import annotations
