@@ -265,8 +265,8 @@ def train(
     if main:
         minutes = (time.monotonic() - started) / 60
         log.info(
-            f"{trainer.env_steps:,} env-steps in {trainer.iteration} iterations "
-            f"({minutes:.1f} minutes); checkpoint {shown(last)}"
+            f"{trainer.env_steps:,} env-steps in {trainer.iteration} iterations; checkpoint "
+            f"{shown(last)} ({minutes:.1f} minutes)"
         )
         if resume_hint is not None and trainer.env_steps < run.total_env_steps:
             log.info(f"resume with: {resume_hint(last)}")
