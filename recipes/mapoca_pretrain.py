@@ -9,9 +9,10 @@
 
 Config: recipes/configs/mapoca_pretrain.yaml (groups env, model, train, algo, loss, logger,
 curriculum; the settings room is :mod:`terrashift_rl.training.settings`). Without a CUDA device,
-run.device=auto sizes the run for the CPU (run.cpu_defaults) where the command line leaves a
-setting alone; a run from a checkpoint (run.resume, run.pretrained) builds its model. Outputs
-(checkpoints, logs, resolved config) go to Hydra's run directory.
+run.device=auto sizes the run for the CPU (run.cpu_defaults: the small model, 32 environments,
+one thread, five minutes) where the command line leaves a setting alone; a run from a checkpoint
+(run.resume, run.pretrained) builds its model. Outputs (checkpoints, logs, resolved config) go to
+Hydra's run directory.
 
 :func:`train` is the run: config, setup (environments, networks, trainer with its loss and
 optimiser, logger), the train loop, cleanup; :func:`launch` sizes the config for the machine
@@ -20,15 +21,19 @@ Started by ``torchrun``, each process joins the process group (unless it is in i
 it stays), trains data-parallel on its own device with seed ``run.seed + rank``
 (:mod:`terrashift_rl.training.distributed`) and leaves the group at the end; rank 0 alone logs,
 shows progress and writes files. SIGINT or SIGTERM stops after the running iteration with a
-checkpoint.
+checkpoint, without the final evaluation, and prints the command that resumes the run; the
+resumed run goes on in the same folder (the config's ``hydra.run.dir``). Messages go through
+Python's logging, which Hydra sends to the terminal and to ``<run dir>/<recipe>.log``.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import hydra
@@ -37,6 +42,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from torchrl.envs import TransformedEnv
 from tqdm import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
 
 from terrashift_rl.modules import make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
@@ -56,30 +62,42 @@ from terrashift_rl.training.checkpoint import (
     world_size_change,
 )
 from terrashift_rl.training.curriculum import Curriculum, CurriculumHook, make_curriculum_env
-from terrashift_rl.training.evaluation import evaluate_periodically, evaluation_scene
+from terrashift_rl.training.evaluation import evaluate_periodically, evaluation_scene, headline
 from terrashift_rl.training.launch import (
     check_warp_cache,
     claim_run_folder,
     hydra_overrides_of_other_ranks,
     refusals_end_the_run,
+    register_run_folder,
     resolve_device,
+    resume_command,
+    shown,
     size_for_the_machine,
+    start_warp,
 )
 from terrashift_rl.training.loggers import close_logger, log_scalars, logger_run_id, make_logger
 from terrashift_rl.training.settings import RecipeConfig, register_config_schemas
 from terrashift_rl.training.signals import StopRequest
-from terrashift_rl.training.trainer import iterate_until
+from terrashift_rl.training.trainer import iterate_until, planned_env_steps
 
 register_config_schemas()
+register_run_folder()
+log = logging.getLogger(Path(__file__).stem)
 
 
-def train(cfg: DictConfig, *, run_dir: Path) -> Path:
+def train(
+    cfg: DictConfig, *, run_dir: Path, resume_hint: Callable[[Path], str] | None = None
+) -> Path:
     """Trains as the composed config ``cfg`` says, writing the checkpoints, logs and resolved
-    config under ``run_dir``; returns the last checkpoint's path."""
+    config under ``run_dir``; returns the last checkpoint's path. A run stopped before its
+    step target shows ``resume_hint(last checkpoint)``, the command that resumes it."""
     # --- config: every setting checked before anything is built ------------------------------
     settings = RecipeConfig.of(cfg)
     run = settings.run
     device = resolve_device(run.device, "run.device")
+    start_warp(device)
+    if run.threads is not None:
+        torch.set_num_threads(run.threads)
     configs = {
         "env_config": dataclasses.asdict(settings.env),
         "model_config": dataclasses.asdict(settings.model),
@@ -117,7 +135,7 @@ def train(cfg: DictConfig, *, run_dir: Path) -> Path:
     folders = [checkpoints] if resume is None else [checkpoints, Path(run.resume).parent]
     for folder in folders if distributed.is_main_process() else []:
         for path in remove_stale_temporaries(folder):
-            print(f"removed {path}, left by a checkpoint write that never finished")
+            log.info(f"removed {path}, left by a checkpoint write that never finished")
 
     # --- setup: environments, networks, trainer (loss, optimiser), logger ---------------------
     joins = distributed.launched() and not distributed.is_distributed()
@@ -168,16 +186,16 @@ def train(cfg: DictConfig, *, run_dir: Path) -> Path:
         trainer.load_state_dict(resume)
         run_id, best = resume["logger_run_id"], resume["best"]
         if main and resume.get("world_size", 1) != distributed.world_size():
-            print(world_size_change(resume.get("world_size", 1), distributed.world_size()))
+            log.info(world_size_change(resume.get("world_size", 1), distributed.world_size()))
     logger = make_logger(settings.logger, run.name, run_dir, run_id) if main else None
     run_id = run_id or logger_run_id(logger)
     if main:
         OmegaConf.save(cfg, run_dir / "config.yaml")
 
-    def evaluate_now() -> dict[str, float]:
+    def evaluate_now(label: str) -> dict[str, float]:
         start = time.monotonic()
         scores = evaluate_periodically(
-            eval_env, networks.actor, seed=run.eval_seed, sampled=run.eval_sampled
+            eval_env, networks.actor, seed=run.eval_seed, sampled=run.eval_sampled, progress=label
         )
         return {**scores, "eval_seconds": time.monotonic() - start}
 
@@ -187,10 +205,17 @@ def train(cfg: DictConfig, *, run_dir: Path) -> Path:
             save_checkpoint(state, last)
 
     # --- train loop ---------------------------------------------------------------------------
-    deadline = None if run.minutes is None else time.monotonic() + 60.0 * run.minutes
     last = checkpoints / "last.pt"
+    started, steps_at_start = time.monotonic(), trainer.env_steps
+    deadline = None if run.minutes is None else started + 60.0 * run.minutes
+    per_iteration = settings.train.num_envs * settings.train.steps_per_iteration
+    per_iteration *= distributed.world_size()
+    planned = planned_env_steps(trainer.env_steps, per_iteration, run.total_env_steps)
+    if main:
+        limit = "" if run.minutes is None else f" or {run.minutes:g} minutes, whichever is first"
+        log.info(f"{run.name}: {planned:,} env-steps{limit}; checkpoints in {shown(checkpoints)}")
     progress = tqdm(
-        total=run.total_env_steps,
+        total=planned if deadline is None else None,  # known after the first iteration
         initial=trainer.env_steps,
         unit="step",
         unit_scale=True,
@@ -199,17 +224,17 @@ def train(cfg: DictConfig, *, run_dir: Path) -> Path:
         disable=not main,
     )
     goal_fraction = "-"  # the latest evaluation's goal fraction, for the progress bar
-    if eval_env and pretrained is not None and resume is None:  # a finetune's zero-shot score
-        zero_shot = evaluate_now()
-        goal_fraction = f"{zero_shot['eval_goal_fraction']:.3f}"
-        progress.write(f"evaluation of the pretrained weights: {zero_shot}")
-        log_scalars(logger, zero_shot, trainer.env_steps)
-    started = time.monotonic()
-    try:
-        with StopRequest(progress) as stop:
+    with logging_redirect_tqdm(), StopRequest(announce=main) as stop:
+        try:
+            if eval_env and pretrained is not None and resume is None:  # a finetune's zero-shot
+                zero_shot = evaluate_now("evaluation of the pretrained weights")
+                goal_fraction = f"{zero_shot['eval_goal_fraction']:.3f}"
+                log.info(f"the pretrained weights: {headline(zero_shot, 'eval_')}")
+                log_scalars(logger, zero_shot, trainer.env_steps)
             for metrics in iterate_until(
                 trainer, total_env_steps=run.total_env_steps, deadline=deadline
             ):
+                stop.activity = "the evaluation and writes after an iteration"
                 # since the loop began, evaluations and checkpoints included, this one's aside
                 metrics["run_seconds"] = time.monotonic() - started
                 progress.update(trainer.env_steps - progress.n)
@@ -217,20 +242,14 @@ def train(cfg: DictConfig, *, run_dir: Path) -> Path:
                     stage = curriculum.stage
                     metrics.update(stages.after_iteration(trainer))
                     if main and curriculum.stage != stage:
-                        progress.write(
+                        log.info(
                             f"{curriculum.describe()} from {trainer.env_steps:,} env-steps (a "
                             f"goal fraction of {metrics['curriculum_eval_goal_fraction']:.3f} "
                             f"at stage {stage + 1})"
                         )
                 if eval_env and trainer.iteration % eval_every == 0:
-                    metrics.update(evaluate_now())
+                    metrics.update(evaluate_now("evaluation"))
                     goal_fraction = f"{metrics['eval_goal_fraction']:.3f}"
-                progress.set_postfix(
-                    **({} if curriculum is None else {"stage": curriculum.describe(short=True)}),
-                    eval_goals=goal_fraction,
-                    reward=f"{metrics['reward_per_decision']:+.4f}",
-                    steps_per_s=f"{metrics['env_steps_per_s']:,.0f}",
-                )
                 log_scalars(logger, metrics, trainer.env_steps)
                 if window:
                     reward = metrics["reward_per_decision"]
@@ -240,34 +259,66 @@ def train(cfg: DictConfig, *, run_dir: Path) -> Path:
                 if snapshot_every and trainer.iteration % snapshot_every == 0:
                     snapshot = checkpoints / f"iteration_{trainer.iteration:06d}.pt"
                     save_checkpoint(weights_state(trainer, configs), snapshot)
+                # the bar's total is what the run will do: the step target, or the iterations
+                # that the time left allows at the pace so far (evaluations and writes included)
+                elapsed = time.monotonic() - started
+                iterations = (trainer.env_steps - steps_at_start) // per_iteration
+                progress.total = planned_env_steps(
+                    trainer.env_steps,
+                    per_iteration,
+                    run.total_env_steps,
+                    seconds_left=None if deadline is None else deadline - time.monotonic(),
+                    seconds_per_iteration=elapsed / max(iterations, 1),
+                )
+                progress.set_postfix(
+                    **({} if curriculum is None else {"stage": curriculum.describe(short=True)}),
+                    eval_goals=goal_fraction,
+                    reward=f"{metrics['reward_per_decision']:+.4f}",
+                    steps_per_s=f"{metrics['env_steps_per_s']:,.0f}",
+                )
                 if distributed.any_process(stop.requested):  # every rank stops alike
                     break
+                stop.activity = "the iteration"
             # between iterations: the state is consistent, the checkpoint resumes exactly
+            stop.activity = "the checkpoint's write"
             save_last()
-            if eval_env and trainer.iteration % eval_every:  # the final policy's score too
-                final = evaluate_now()
-                progress.write(f"evaluation at {trainer.env_steps:,} env-steps: {final}")
-                log_scalars(logger, final, trainer.env_steps)
-    except KeyboardInterrupt:
-        if main:
-            progress.write(f"interrupted mid-iteration; {last} is the last checkpoint written")
-        raise SystemExit(130) from None
-    except FloatingPointError as error:
-        if not main:  # every rank stops at the same iteration; rank 0 says why
-            raise SystemExit(1) from None
-        written = f"{last} is the last checkpoint written" if last.exists() else "no checkpoint"
-        raise SystemExit(f"{error}\nstopped without saving that iteration; {written}") from None
+            stop.activity = "the run's cleanup, after its checkpoint"
+            if eval_env and trainer.iteration % eval_every and not stop.requested:
+                with stop.skippable("the final evaluation"):  # a signal skips it
+                    final = evaluate_now("final evaluation (Ctrl-C skips it)")
+                    log.info(
+                        f"evaluation at {trainer.env_steps:,} env-steps: {headline(final, 'eval_')}"
+                    )
+                    log_scalars(logger, final, trainer.env_steps)
+        except KeyboardInterrupt:
+            if main:
+                log.info(
+                    f"interrupted during {stop.activity}; {shown(last)} is the last checkpoint"
+                )
+                if resume_hint is not None and last.exists():
+                    log.info(f"resume with: {resume_hint(last)}")
+            raise SystemExit(130) from None
+        except FloatingPointError as error:
+            if not main:  # every rank stops at the same iteration; rank 0 says why
+                raise SystemExit(1) from None
+            written = f"{last} is the last checkpoint written" if last.exists() else "no checkpoint"
+            raise SystemExit(f"{error}\nstopped without saving that iteration; {written}") from None
 
-    # --- cleanup ------------------------------------------------------------------------------
-    finally:
-        progress.close()
-        close_logger(logger)
-        if joins:  # leaves the process group as it found it
-            distributed.destroy_process_group()
+        # --- cleanup --------------------------------------------------------------------------
+        finally:
+            progress.close()
+            with stop.skippable("closing the logger"):
+                close_logger(logger)
+            if joins:  # leaves the process group as it found it
+                distributed.destroy_process_group()
     if main:
-        print(
-            f"{trainer.env_steps:,} env-steps in {trainer.iteration} iterations; checkpoint {last}"
+        minutes = (time.monotonic() - started) / 60
+        log.info(
+            f"{trainer.env_steps:,} env-steps in {trainer.iteration} iterations; checkpoint "
+            f"{shown(last)} ({minutes:.1f} minutes)"
         )
+        if resume_hint is not None and trainer.env_steps < run.total_env_steps:
+            log.info(f"resume with: {resume_hint(last)}")
     return last
 
 
@@ -283,7 +334,7 @@ def launch(cfg: DictConfig) -> Path:
     )
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     with claim_run_folder(run_dir):
-        return train(cfg, run_dir=run_dir)
+        return train(cfg, run_dir=run_dir, resume_hint=resume_command)
 
 
 @hydra.main(version_base=None, config_path="configs", config_name="mapoca_pretrain")

@@ -24,6 +24,7 @@ __all__ = [
     "evaluate_baselines",
     "evaluate_periodically",
     "evaluation_scene",
+    "headline",
 ]
 
 HEADLINE = (
@@ -35,6 +36,19 @@ HEADLINE = (
 )
 """The metrics every score is reported with, the goal fraction first: a policy that keeps its
 spheres still loses none and scores a high success rate, but not a high goal fraction."""
+
+
+def headline(metrics: dict[str, float], prefix: str = "") -> str:
+    """The :data:`HEADLINE` metrics of a score (keys ``prefix + name``) as one line.
+
+    Example:
+        >>> score = {"goal_fraction": 0.5, "success_rate": 0.75, "out_of_bounds_per_episode": 1,
+        ...          "mean_episode_length": 212.5, "mean_reward_per_decision": 0.0123}
+        >>> print(headline(score))  # doctest: +NORMALIZE_WHITESPACE
+        goal fraction 0.5, success rate 0.75, out of bounds per episode 1,
+        mean episode length 212.5, mean reward per decision 0.0123
+    """
+    return ", ".join(f"{name.replace('_', ' ')} {metrics[prefix + name]:.4g}" for name in HEADLINE)
 
 
 def actor_policy(actor: Callable, exploration: ExplorationType) -> Policy:
@@ -78,7 +92,7 @@ def evaluate(
     policy: Policy,
     *,
     episodes: int | None = None,
-    progress: bool = True,
+    progress: bool | str = True,
 ) -> dict[str, float]:
     """Runs exactly one episode in every environment of ``env`` and scores ``policy``.
 
@@ -95,7 +109,8 @@ def evaluate(
             ``TransformedEnv`` wrapping one.
         policy: callable writing ``("agents", "action")`` into the tensordict it receives.
         episodes: number of episodes; must equal ``env``'s number of environments if given.
-        progress: show a tqdm bar over the decisions.
+        progress: show a tqdm bar over the decisions (with the episodes finished), labelled
+            ``evaluate`` or with the string given.
 
     Returns:
         ``goal_fraction``, goals over ``episodes * num_objects`` (the headline; above 1 in
@@ -132,7 +147,12 @@ def evaluate(
     terminated = torch.zeros(num_envs, dtype=torch.bool, device=device)
     work = torch.zeros(num_envs, dtype=torch.float64, device=device)
 
-    bar = tqdm(total=num_envs, desc="evaluate", unit="episode", disable=not progress)
+    bar = tqdm(
+        total=config.max_episode_steps,
+        desc=progress if isinstance(progress, str) else "evaluate",
+        unit="decision",
+        disable=not progress,
+    )
     with torch.no_grad():
         td = env.reset()
         # every environment ends within max_episode_steps decisions (truncation)
@@ -152,7 +172,8 @@ def evaluate(
             terminated |= finished & nxt.get("terminated").reshape(num_envs)
             running &= ~done
             left = int(running.sum())
-            bar.update(num_envs - left - bar.n)
+            bar.set_postfix_str(f"{num_envs - left}/{num_envs} episodes done", refresh=False)
+            bar.update()
             if left == 0:
                 break
     bar.close()
@@ -201,7 +222,7 @@ def evaluate_baselines(
         num_envs: environments, hence episodes, per policy.
         device: where to simulate.
         seed: seed of the environments and of the random policy.
-        progress: show a tqdm bar per policy.
+        progress: show a tqdm bar per policy, labelled with its name.
         respawn: False for evaluation mode, True for training mode (episodes run to the step
             limit).
 
@@ -226,12 +247,12 @@ def evaluate_baselines(
     results = {}
     for name, policy in policies.items():
         env = TerraShiftEnv(config, num_envs=num_envs, device=device, seed=seed)
-        results[name] = evaluate(env, policy, progress=progress)
+        results[name] = evaluate(env, policy, progress=progress and f"baseline {name}")
     return results
 
 
 def evaluate_periodically(
-    env: EnvBase, actor: Callable, *, seed: int, sampled: bool = False
+    env: EnvBase, actor: Callable, *, seed: int, sampled: bool = False, progress: str | None = None
 ) -> dict[str, float]:
     """Scores ``actor``'s mean action (:func:`evaluate`) on the same scenes at every call:
     ``env`` is reseeded with ``seed`` first, so that the scores of one run's successive
@@ -240,10 +261,12 @@ def evaluate_periodically(
 
     With ``sampled``, the policy's sampled actions are scored too, on the same scenes, with
     the metrics prefixed ``eval_sampled_``: they draw from torch's generator seeded with
-    ``seed`` inside a fork of it, so that training's random stream is left as it was."""
+    ``seed`` inside a fork of it, so that training's random stream is left as it was.
+    ``progress`` labels a bar over each evaluation's decisions; none without it."""
     env.set_seed(seed)
     actor.eval()
-    metrics = evaluate(env, actor_policy(actor, ExplorationType.DETERMINISTIC), progress=False)
+    mean = actor_policy(actor, ExplorationType.DETERMINISTIC)
+    metrics = evaluate(env, mean, progress=progress or False)
     scores = {f"eval_{name}": metrics[name] for name in HEADLINE}
     if sampled:
         device = torch.device(env.device)
@@ -253,6 +276,7 @@ def evaluate_periodically(
         with torch.random.fork_rng(devices=cuda):
             torch.manual_seed(seed)
             env.set_seed(seed)
-            metrics = evaluate(env, actor_policy(actor, ExplorationType.RANDOM), progress=False)
+            samples = actor_policy(actor, ExplorationType.RANDOM)
+            metrics = evaluate(env, samples, progress=progress and f"{progress} (samples)")
         scores.update({f"eval_sampled_{name}": metrics[name] for name in HEADLINE})
     return scores

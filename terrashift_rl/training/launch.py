@@ -1,12 +1,15 @@
-"""How a recipe meets its command line and its machine: the device setting, the CPU-sized
-defaults of a run without CUDA, the command line of a ``torchrun`` rank other than 0, the run
-folder's lock and writability, Warp's kernel cache, and refusals that end a run with their
-message alone."""
+"""How a recipe meets its command line and its machine: the device setting, Warp's start on it,
+the CPU-sized defaults of a run without CUDA, the run's folder (its lock and writability) and the
+command that resumes it, the command line of a ``torchrun`` rank other than 0, Warp's kernel
+cache, and refusals that end a run with their message alone."""
 
 from __future__ import annotations
 
 import fcntl
+import logging
 import os
+import shlex
+import sys
 import tempfile
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -14,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+import warp as wp
 from hydra import compose
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.override_parser.overrides_parser import OverridesParser
@@ -32,13 +36,20 @@ __all__ = [
     "claim_run_folder",
     "cpu_overrides",
     "hydra_overrides_of_other_ranks",
+    "register_run_folder",
     "resolve_device",
     "refusals_end_the_run",
+    "resume_command",
+    "run_folder",
+    "shown",
     "size_for_the_machine",
+    "start_warp",
 ]
 
 LOCK_NAME = "run.lock"
 """The file in a run folder that holds the process id of the run writing there."""
+
+log = logging.getLogger(__name__)
 
 
 def resolve_device(name: Any, key: str) -> torch.device:
@@ -59,6 +70,68 @@ def resolve_device(name: Any, key: str) -> torch.device:
             f"use {key}=auto or {key}=cpu"
         )
     return device
+
+
+def start_warp(device: torch.device) -> None:
+    """Initialises Warp for the run's ``device``. On the CPU its native library's start is kept
+    off the terminal: it would print that it found no CUDA driver, which the run has said
+    already (a Python error of Warp's start still raises)."""
+    if device.type != "cpu":
+        wp.init()
+        return
+    sys.stderr.flush()
+    terminal, nothing = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    os.dup2(nothing, 2)
+    try:
+        wp.init()
+    finally:
+        os.dup2(terminal, 2)
+        os.close(terminal)
+        os.close(nothing)
+
+
+def run_folder(resume: str | None, fresh: str) -> str:
+    """Hydra's run folder (``hydra.run.dir``, the resolver ``${run_folder:...}`` of the training
+    configs): the folder of the run whose ``<run>/checkpoints/last.pt`` ``resume`` names, so
+    that a resumed run goes on writing there and its ``last.pt`` stays where it was; ``fresh``
+    for a new run or a checkpoint kept elsewhere.
+
+    Example:
+        >>> run_folder("outputs/2026-11-27/08-00-00/checkpoints/last.pt", "outputs/new")
+        'outputs/2026-11-27/08-00-00'
+        >>> run_folder(None, "outputs/new"), run_folder("saved/last.pt", "outputs/new")
+        ('outputs/new', 'outputs/new')
+    """
+    path = Path(resume) if resume else None
+    if path is None or path.name != "last.pt" or path.parent.name != "checkpoints":
+        return fresh
+    return str(path.parent.parent)
+
+
+def register_run_folder() -> None:
+    """Lets the configs name :func:`run_folder` as ``${run_folder:<resume>,<fresh folder>}``."""
+    OmegaConf.register_new_resolver("run_folder", run_folder, replace=True)
+
+
+def resume_command(checkpoint: Path) -> str:
+    """The command that resumes this run from ``checkpoint``: the recipe, its config name where
+    the command line gave one and every override of the command line, with ``run.resume``
+    (relative to the working folder where it lies below it). Needs Hydra's app context."""
+    hydra_config = HydraConfig.get()
+    script = sys.argv[0]
+    words = ["python", script]
+    if hydra_config.job.config_name != Path(script).stem:
+        words += ["--config-name", hydra_config.job.config_name]
+    given = list(hydra_config.overrides.task)
+    words += [text for text, key in zip(given, _keys(given), strict=True) if key != "run.resume"]
+    words.append(f"run.resume={shown(checkpoint)}")
+    return shlex.join(words)
+
+
+def shown(path: Path) -> Path:
+    """``path`` as a message shows it: relative to the working folder where it lies below it."""
+    path = Path(path).absolute()
+    return path.relative_to(Path.cwd()) if path.is_relative_to(Path.cwd()) else path
 
 
 def _keys(overrides: Sequence[str]) -> list[str]:
@@ -138,14 +211,16 @@ def size_for_the_machine(
             ) from None
         note = f" with the model of {source}" if model else ""
         if distributed.is_main_process():
-            print(
+            log.info(
                 f"no CUDA device: a CPU-sized run ({' '.join(sized)}){note}; set {device_key}=cpu "
                 "to keep the configured sizes"
                 if sized
                 else f"no CUDA device: running on the CPU with the configured sizes{note}"
             )
     elif changed and distributed.is_main_process():
-        print(f"the model of {source}: it differs from the configured one in {', '.join(changed)}")
+        log.info(
+            f"the model of {source}: it differs from the configured one in {', '.join(changed)}"
+        )
     if sized:
         cfg = compose(config_name=hydra_config.job.config_name, overrides=[*sized, *given])
     for key, value in model.items():  # the room allows no interpolation in a model setting

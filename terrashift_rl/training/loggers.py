@@ -1,7 +1,11 @@
-"""The loggers the ``logger`` settings name (torchrl's), and logging an iteration's metrics."""
+"""The loggers the ``logger`` settings name (torchrl's), and logging an iteration's metrics.
+wandb's own terminal output (its banner, its summary of every metric) is switched off: the run
+says in one line where its logs are."""
 
 from __future__ import annotations
 
+import logging
+import os
 from pathlib import Path
 
 from torchrl.record.loggers import Logger
@@ -9,6 +13,8 @@ from torchrl.record.loggers import Logger
 from terrashift_rl.training.settings import LoggerConfig
 
 __all__ = ["close_logger", "log_scalars", "logger_run_id", "make_logger"]
+
+log = logging.getLogger(__name__)
 
 
 def make_logger(
@@ -26,6 +32,7 @@ def make_logger(
         from torchrl.record.loggers import TensorboardLogger
 
         return TensorboardLogger(name, log_dir=str(run_dir / "logs"))
+    import wandb
     from torchrl.record.loggers import WandbLogger
 
     return WandbLogger(
@@ -36,6 +43,7 @@ def make_logger(
         id=run_id,
         resume="allow",
         log_env_packages=False,
+        settings=wandb.Settings(silent=True, console="off"),
     )
 
 
@@ -52,7 +60,14 @@ def logger_run_id(logger: Logger | None) -> str | None:
 
 
 def close_logger(logger: Logger | None) -> None:
-    """Finishes the logger's run (wandb's); the others need nothing."""
-    finish = getattr(getattr(logger, "experiment", None), "finish", None)
-    if finish is not None:
-        finish()
+    """Finishes the logger's run and says where it is (wandb's; the others need nothing)."""
+    experiment = getattr(logger, "experiment", None)
+    finish = getattr(experiment, "finish", None)
+    if finish is None:
+        return
+    finish()
+    if experiment.offline:
+        folder = os.path.relpath(experiment.settings.sync_dir)
+        log.info(f"wandb: offline run in {folder} (`wandb sync {folder}` uploads it)")
+    else:
+        log.info(f"wandb: {experiment.url}")

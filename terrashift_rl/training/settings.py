@@ -253,12 +253,24 @@ class RunConfig:
     """``auto`` (CUDA when present, else the CPU with ``cpu_defaults``), ``cpu``, ``cuda`` or
     ``cuda:<index>``."""
     cpu_defaults: list[str] = setting(
-        ["model=small", "train.num_envs=32", "run.eval_episodes=16"], OVERRIDES
+        [
+            "model=small",
+            "train.num_envs=32",
+            "run.eval_episodes=16",
+            "run.minutes=5",
+            "run.threads=1",
+        ],
+        OVERRIDES,
     )
     """With ``device=auto`` and no CUDA device, these overrides size the run for a CPU (a first
-    iteration in seconds, under 1 GB), each unless the command line sets its key or group; a
-    run from a checkpoint (resume, pretrained) builds that checkpoint's model instead of
-    ``model=small``. ``device=cpu`` keeps the configured sizes."""
+    iteration in seconds, under 1 GB, five minutes of training, one thread), each unless the
+    command line sets its key or group; a run from a checkpoint (resume, pretrained) builds
+    that checkpoint's model instead of ``model=small``. ``device=cpu`` keeps the configured
+    sizes."""
+    threads: int | None = setting(None, at_least(1), null="torch's default")
+    """Threads of torch's operators on the CPU (``torch.set_num_threads``). The CPU-sized run
+    takes one: its networks are too small to share out, and on cores that other programs use
+    too, threads that wait for each other made a policy step 30 times slower."""
     total_env_steps: int = setting(100_000_000, at_least(1))
     """Environment steps (decisions x environments) after which the run stops."""
     minutes: float | None = setting(None, above(0), null="no time limit")
@@ -413,9 +425,13 @@ class EvaluateConfig:
     device: str = setting("auto", DEVICE)
     """``auto`` (CUDA when present, else the CPU with ``cpu_defaults``), ``cpu``, ``cuda`` or
     ``cuda:<index>``."""
-    cpu_defaults: list[str] = setting(["episodes=64"], OVERRIDES)
+    cpu_defaults: list[str] = setting(
+        ["episodes=16", "video.steps=128", "video.every=4", "threads=1"], OVERRIDES
+    )
     """With ``device=auto`` and no CUDA device, these overrides apply unless the command line
-    sets their keys (a minute or two)."""
+    sets their keys: about a minute on two CPU cores."""
+    threads: int | None = setting(None, at_least(1), null="torch's default")
+    """Threads of torch's operators on the CPU, as the training run's ``run.threads``."""
     seed: int = setting(1, SEED)
     """Seed of the scenes and the sampled actions."""
     video: VideoConfig = field(default_factory=VideoConfig)

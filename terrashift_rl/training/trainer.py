@@ -571,3 +571,28 @@ def iterate_until(
         if deadline is not None and distributed.any_process(time.monotonic() >= deadline):
             return
         yield trainer.train_iteration()
+
+
+def planned_env_steps(
+    env_steps: int,
+    per_iteration: int,
+    total_env_steps: int,
+    *,
+    seconds_left: float | None = None,
+    seconds_per_iteration: float | None = None,
+) -> int:
+    """The env-steps at which :func:`iterate_until` will stop, from ``env_steps`` done and
+    ``per_iteration`` per iteration: the first iteration's end at or past ``total_env_steps``,
+    or earlier the last iteration that starts within ``seconds_left`` (the deadline) at
+    ``seconds_per_iteration``.
+
+    Example:
+        >>> planned_env_steps(0, 1024, 100_000)  # 98 iterations
+        100352
+        >>> planned_env_steps(2048, 1024, 100_000, seconds_left=45.0, seconds_per_iteration=10.0)
+        7168
+    """
+    iterations = math.ceil(max(total_env_steps - env_steps, 0) / per_iteration)
+    if seconds_left is not None and seconds_per_iteration:
+        iterations = min(iterations, math.ceil(max(seconds_left, 0.0) / seconds_per_iteration))
+    return env_steps + iterations * per_iteration

@@ -342,13 +342,14 @@ without_cuda = pytest.mark.skipif(torch.cuda.is_available(), reason="needs a mac
     [
         (
             [],
-            "no CUDA device: a CPU-sized run (model=small train.num_envs=32 run.eval_episodes=16); "
+            "no CUDA device: a CPU-sized run (model=small train.num_envs=32 run.eval_episodes=16 "
+            "run.minutes=5 run.threads=1); "
             "set run.device=cpu to keep the configured sizes",
             (32, 32, 16),
         ),
         (
             ["train=smoke", "model=table1"],
-            "no CUDA device: a CPU-sized run (run.eval_episodes=16); set run.device=cpu",
+            "no CUDA device: a CPU-sized run (run.eval_episodes=16 run.minutes=5 run.threads=1)",
             (4, 128, 16),
         ),
         (["run.device=cpu", "train.num_envs=4", "train.minibatches=2"], None, (4, 64, 128)),
@@ -406,7 +407,8 @@ def test_without_cuda_finetuning_builds_the_network_of_its_checkpoint(tmp_path):
     result = run(*finetune, "hydra.run.dir=b", cwd=tmp_path, config_name=None)
     assert result.returncode == 0, result.stderr
     assert (
-        "no CUDA device: a CPU-sized run (train.num_envs=32 run.eval_episodes=16) with the model "
+        "no CUDA device: a CPU-sized run (train.num_envs=32 run.eval_episodes=16 run.minutes=5 "
+        "run.threads=1) with the model "
         "of run.pretrained; set run.device=cpu to keep the configured sizes"
     ) in result.stdout
     saved = load_checkpoint(tmp_path / "a/checkpoints/last.pt")["model_config"]
@@ -448,8 +450,16 @@ def test_without_cuda_finetuning_builds_the_network_of_its_checkpoint(tmp_path):
 @pytest.mark.parametrize(
     ("overrides", "episodes", "line"),
     [
-        ([], 64, "no CUDA device: a CPU-sized run (episodes=64); set device=cpu to keep"),
-        (["episodes=3"], 3, "no CUDA device: running on the CPU with the configured sizes"),
+        (
+            [],
+            16,
+            "no CUDA device: a CPU-sized run (episodes=16 video.every=4 threads=1); set device=cpu",
+        ),
+        (
+            ["episodes=3"],
+            3,
+            "no CUDA device: a CPU-sized run (video.every=4 threads=1); set device=cpu",
+        ),
     ],
     ids=["configured", "episodes-given"],
 )
@@ -505,6 +515,72 @@ def test_a_terminated_run_checkpoints_a_whole_iteration(tmp_path):
     for name, value in s["networks"].items():
         torch.testing.assert_close(k["networks"][name], value, atol=0, rtol=0)
     torch.testing.assert_close(k["simulator"], s["simulator"], atol=0, rtol=0)
+
+
+def wait_for(condition, what: str, timeout: float = 300.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, f"no {what} within {timeout:.0f} s"
+        time.sleep(0.05)
+
+
+@pytest.mark.slow
+def test_ctrl_c_checkpoints_exits_in_seconds_and_prints_the_command_that_resumes(tmp_path):
+    # episodes of 4,096 decisions: a final evaluation would take minutes, the stop skips it
+    overrides = [
+        "run.total_env_steps=1000000",
+        "run.checkpoint_every=1",
+        "run.eval_every=1000",
+        "env.max_episode_steps=4096",
+    ]
+    command = [sys.executable, str(RECIPES / "mapoca_pretrain.py"), "--config-name", "smoke"]
+    interrupted = subprocess.Popen(
+        [*command, *overrides, "hydra.run.dir=k"],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    last = tmp_path / "k/checkpoints/last.pt"
+    try:
+        wait_for(last.exists, "first checkpoint")
+        first = last.stat().st_mtime
+        wait_for(lambda: last.stat().st_mtime != first, "second checkpoint")
+        iteration_s = last.stat().st_mtime - first  # on a loaded machine, iterations slow down
+        interrupted.send_signal(signal.SIGINT)
+        signalled = time.monotonic()
+        stdout, stderr = interrupted.communicate(timeout=600)
+        exit_s = time.monotonic() - signalled
+    finally:
+        interrupted.kill()
+    assert interrupted.returncode == 0, stderr
+    # the iteration under way ends, its checkpoint is written, then the run exits
+    assert exit_s < 20 + 2 * iteration_s, f"exited {exit_s:.0f} s after Ctrl-C"
+    assert "SIGINT: stopping after this iteration" in stdout
+    assert "final evaluation" not in stderr and "evaluation at" not in stdout
+    stopped = load_checkpoint(last)
+    assert stopped["iteration"] >= 2
+    (line,) = [line for line in stdout.splitlines() if line.startswith("resume with: ")]
+    resume = shlex.split(line.removeprefix("resume with: "))
+    script = str(RECIPES / "mapoca_pretrain.py")
+    assert resume == [
+        "python",
+        script,
+        "--config-name",
+        "smoke",
+        *overrides,
+        f"run.resume={last.relative_to(tmp_path)}",
+    ]
+    # the printed command resumes it, in its run's folder (one more iteration here)
+    more = [f"run.total_env_steps={stopped['env_steps'] + 1}", "run.eval_every=null"]
+    resumed = subprocess.run(
+        [sys.executable, *resume[1:], *more], cwd=tmp_path, capture_output=True, text=True
+    )
+    assert resumed.returncode == 0, resumed.stderr
+    assert load_checkpoint(last)["iteration"] == stopped["iteration"] + 1
+    assert not (tmp_path / "outputs").exists()
+    log = (tmp_path / "k/mapoca_pretrain.log").read_text()
+    assert "SIGINT: stopping after this iteration" in log and line in log  # the first run's too
 
 
 @pytest.mark.slow

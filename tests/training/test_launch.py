@@ -6,7 +6,6 @@ import signal
 import pytest
 import torch
 from omegaconf import OmegaConf
-from tqdm import tqdm
 
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training import load_checkpoint
@@ -72,13 +71,30 @@ def test_a_checkpoint_is_refused_on_a_scene_with_other_actions():
 
 def test_a_second_signal_interrupts_at_once():
     before = {number: signal.getsignal(number) for number in (signal.SIGINT, signal.SIGTERM)}
-    with StopRequest(tqdm(disable=True)) as stop:
+    with StopRequest(announce=False) as stop:
         assert signal.getsignal(signal.SIGTERM) is stop
         stop(signal.SIGTERM, None)
         assert stop.requested
         with pytest.raises(KeyboardInterrupt):
             stop(signal.SIGINT, None)
     assert {number: signal.getsignal(number) for number in before} == before
+
+
+def test_a_signal_in_a_skippable_step_skips_it_and_only_it(caplog):
+    finished = []
+    with caplog.at_level("INFO"), StopRequest() as stop:
+        with stop.skippable("the final evaluation"):
+            stop(signal.SIGINT, None)
+            finished.append("the final evaluation")
+        assert not stop.requested  # the run was not asked to stop: the step was skipped
+        stop(signal.SIGINT, None)  # outside it, the first signal asks to stop
+        assert stop.requested
+    assert finished == []
+    assert caplog.messages == [
+        "the final evaluation skipped",
+        "SIGINT: stopping after this iteration, then saving a checkpoint to resume from (signal "
+        "again to quit at once, without it)",
+    ]
 
 
 def test_the_best_window_writes_best_pt_only_when_its_mean_is_the_highest_yet(tmp_path):
