@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from terrashift_rl.sim.columns import column_center
 from terrashift_rl.sim.observations import MISS, surface_height
-from terrashift_rl.sim.physics import column_center
 from terrashift_rl.sim.types import Model
 
 wp.set_module_options({"enable_backward": False})  # nothing differentiates through it

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from terrashift_rl.sim.columns import column_center, column_top, smooth_surface
 from terrashift_rl.sim.events import assigned_goal
-from terrashift_rl.sim.physics import column_center, column_top, smooth_surface
 from terrashift_rl.sim.types import SHAPE_BOX, SHAPE_ELLIPSOID, Model
 
 wp.set_module_options({"enable_backward": False})  # nothing differentiates through it

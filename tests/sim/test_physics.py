@@ -7,7 +7,14 @@ import pytest
 import torch
 import warp as wp
 
-from terrashift_rl.sim import COLUMN_SHAPES, ScriptedScene, Simulator, TerraShiftConfig, physics
+from terrashift_rl.sim import (
+    COLUMN_SHAPES,
+    ScriptedScene,
+    Simulator,
+    TerraShiftConfig,
+    columns,
+    physics,
+)
 from terrashift_rl.sim.types import Model, build_model
 
 RADIUS = 0.075
@@ -44,7 +51,7 @@ def _smooth_surface_at(
     out: wp.array(dtype=wp.vec4),
 ):
     i = wp.tid()
-    out[i] = physics.smooth_surface(model, height_prev, height, 0, points[i][0], points[i][1], frac)
+    out[i] = columns.smooth_surface(model, height_prev, height, 0, points[i][0], points[i][1], frac)
 
 
 def reference_smooth_surface(cfg, height_prev, height, x, y, frac) -> np.ndarray:
