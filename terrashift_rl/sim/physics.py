@@ -438,7 +438,11 @@ def sphere_kernels(surface_flow: bool, surface_work: bool) -> tuple[wp.Kernel, w
         velocity_out[e, j] = v
         angular_velocity_out[e, j] = w
 
-    @wp.kernel(cuda_max_registers=CONTACT_MAX_REGISTERS, module="unique")
+    @wp.kernel(
+        cuda_max_registers=CONTACT_MAX_REGISTERS,
+        module="unique",
+        module_options={"enable_backward": False},
+    )
     def substep(
         model: Model,
         frac: float,
@@ -475,7 +479,11 @@ def sphere_kernels(surface_flow: bool, surface_work: bool) -> tuple[wp.Kernel, w
             j,
         )
 
-    @wp.kernel(cuda_max_registers=CONTACT_MAX_REGISTERS, module="unique")
+    @wp.kernel(
+        cuda_max_registers=CONTACT_MAX_REGISTERS,
+        module="unique",
+        module_options={"enable_backward": False},
+    )
     def tick_substeps(
         model: Model,
         height_prev: wp.array3d(dtype=float),

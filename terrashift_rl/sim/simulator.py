@@ -13,14 +13,13 @@ from collections.abc import Iterator
 import torch
 import warp as wp
 
-from terrashift_rl.sim import actuators, camera, events, observations, physics
+from terrashift_rl.sim import camera, events, observations, physics
 from terrashift_rl.sim.actuators import actuator_for
 from terrashift_rl.sim.config import TerraShiftConfig
 from terrashift_rl.sim.types import ACTION_DIM, Data, build_model
 
 wp.set_module_options({"enable_backward": False})  # nothing differentiates through it
 
-_KERNEL_MODULES = (physics, events, observations, camera)
 _INT32_MAX = 2**31 - 1
 _RENAMED_ARRAYS = {"env_mask": "reset_mask"}
 """Earlier name -> name of the data arrays renamed since checkpoints were first written."""
@@ -100,9 +99,10 @@ class Simulator:
             surface_flow=self.actuator.moves_surface,
         )
         self.actuator.allocate(self.data, self.config, self.device)
-        self._sphere_kernels = physics.sphere_kernels(
+        substep, tick_substeps = physics.sphere_kernels(
             self.actuator.moves_surface, self.config.count_surface_work
         )
+        self._sphere_kernel = tick_substeps if fuse_substeps else substep
         self._views: dict[str, torch.Tensor] = {}
         self._torch_stream = None
         self._stream = None
@@ -111,9 +111,13 @@ class Simulator:
             self._stream = wp.stream_from_torch(self._torch_stream)
         self._step_graph = None
         self._reset_graph = None
-        for module in (*_KERNEL_MODULES, *(kernel.module for kernel in self._sphere_kernels)):
+        # every module a step or reset launches, and only those, before a graph is captured
+        modules = [events, observations, self._sphere_kernel.module]
+        if self.config.camera_resolution:
+            modules.append(camera)
+        for module in modules:
             wp.load_module(module, device=self.device)
-        wp.load_module(actuators, device=self.device, recursive=True)
+        self.actuator.load(self.device)
         self.seed(seed)
         if self.device.is_cuda and cuda_graph:
             self._step_graph = self._capture(self._launch_step)
@@ -285,15 +289,16 @@ class Simulator:
             d.surface_work,
             d.sphere_active,
         )
-        substep, tick_substeps = self._sphere_kernels
         if self.fuse_substeps:
-            wp.launch(tick_substeps, dim=self.num_envs, inputs=[m, *fields, *current, *scratch])
+            wp.launch(
+                self._sphere_kernel, dim=self.num_envs, inputs=[m, *fields, *current, *scratch]
+            )
             return
         substeps = self.config.substeps
         for s in range(substeps):
             src, dst = (current, scratch) if s % 2 == 0 else (scratch, current)
             wp.launch(
-                substep,
+                self._sphere_kernel,
                 dim=(self.num_envs, self.config.num_objects),
                 inputs=[m, (s + 0.5) / substeps, *fields, *src, *dst],
             )

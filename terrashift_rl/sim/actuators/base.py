@@ -64,6 +64,12 @@ class Actuator:
         """Adds the family's state arrays to ``data`` (leading dimension ``data.num_envs``)."""
         raise NotImplementedError
 
+    def load(self, device: wp.context.Device) -> None:
+        """Loads (compiling unless cached) the Warp modules of every kernel the family
+        launches, and no others: the simulator calls it when built, before a step can be
+        captured in a CUDA graph."""
+        raise NotImplementedError
+
     def launch_reset(self, sim: Simulator) -> None:
         """Draws a random start where ``reset_mask`` is set, from each environment's ``rng``
         (before the goals are drawn)."""

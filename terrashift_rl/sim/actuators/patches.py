@@ -309,6 +309,9 @@ class PatchActuator(Actuator):
             data.agent_sigma,
         ]
 
+    def load(self, device: wp.context.Device) -> None:
+        wp.load_module(reset_agents.module, device=device)
+
     def launch_reset(self, sim: Simulator) -> None:
         d = sim.data
         wp.launch(
@@ -352,7 +355,7 @@ def sliding_kernel(patch_velocity: wp.Function) -> wp.Kernel:
     surface_velocity) over [num_envs, G(y), G(x)]; with ``use_mask`` only where ``reset_mask``
     is set."""
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", module_options={"enable_backward": False})
     def compute_surface_velocity(
         model: Model,
         reset_mask: wp.array(dtype=wp.bool),
@@ -384,9 +387,8 @@ class SlidingPatchActuator(PatchActuator):
     moves_surface = True
     patch_velocity: ClassVar[wp.Function]
 
-    def allocate(self, data: Data, config: TerraShiftConfig, device: wp.context.Device) -> None:
-        super().allocate(data, config, device)
-        # built for the family, so loaded here: before a step is captured as a CUDA graph
+    def load(self, device: wp.context.Device) -> None:
+        super().load(device)
         wp.load_module(sliding_kernel(self.patch_velocity).module, device=device)
 
     def launch_surface(self, sim: Simulator, *, reset: bool) -> None:

@@ -65,6 +65,10 @@ class Wavelets(PatchActuator):
         high = config.max_amplitude
         return config.min_amplitude_ratio * high, high, config.amplitude_gain
 
+    def load(self, device: wp.context.Device) -> None:
+        super().load(device)
+        wp.load_module(compute_heights.module, device=device)
+
     def launch_surface(self, sim: Simulator, *, reset: bool) -> None:
         d, g = sim.data, sim.config.grid_size
         wp.launch(
