@@ -90,6 +90,8 @@ ENTRIES = {
     "env_config": (dict,),
     "model_config": (dict,),
     "train_config": (dict,),
+    "curriculum_config": (dict,),
+    "curriculum": (dict,),
     "iteration": (int,),
     "env_steps": (int,),
     "mean_reward_per_decision": (float,),
@@ -224,7 +226,7 @@ def check_training_state(state: dict[str, Any], path: str | Path) -> dict[str, A
                 "None" if kind is type(None) else kind.__name__ for kind in kinds
             )
             raise _refused(path, key, f"must be a {expected}, got a {type(value).__name__}")
-    for key in ("env_config", "model_config", "train_config"):
+    for key in _SETTINGS:
         entries = state.get(key, {})
         if any(not isinstance(name, str) for name in entries):
             raise _refused(path, key, "must be a mapping of setting names to values")
@@ -283,10 +285,15 @@ def _train_settings(values: dict, algo: str) -> TrainConfig:
     return TrainConfig.of(values, {**loss, "algo": algo})
 
 
+def _curriculum_settings(values: dict, algo: str) -> CurriculumSettings:
+    return build(CurriculumSettings, values, "curriculum")
+
+
 _SETTINGS = {
     "env_config": _env_settings,
     "model_config": _model_settings,
     "train_config": _train_settings,
+    "curriculum_config": _curriculum_settings,
 }
 """How each config a checkpoint holds passes the settings room (given the algorithm)."""
 
