@@ -285,15 +285,11 @@ def _train_settings(values: dict, algo: str) -> TrainConfig:
     return TrainConfig.of(values, {**loss, "algo": algo})
 
 
-def _curriculum_settings(values: dict, algo: str) -> CurriculumSettings:
-    return build(CurriculumSettings, values, "curriculum")
-
-
 _SETTINGS = {
     "env_config": _env_settings,
     "model_config": _model_settings,
     "train_config": _train_settings,
-    "curriculum_config": _curriculum_settings,
+    "curriculum_config": lambda values, _: build(CurriculumSettings, values, "curriculum"),
 }
 """How each config a checkpoint holds passes the settings room (given the algorithm)."""
 
