@@ -115,6 +115,8 @@ def summarize(seed: int, scalars: Path, thresholds: list[float], launch_seconds:
 def run_seeds(args: argparse.Namespace, folder: Path) -> list[dict]:
     """Trains every seed, ``slots`` at a time, each on its own GPUs; returns their entries."""
     gpus = torch.cuda.device_count() if not args.smoke else 0
+    # the GPUs this process sees, as CUDA_VISIBLE_DEVICES names them for the seeds' processes
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES", ",".join(map(str, range(gpus)))).split(",")
     slots = max(1, gpus // args.processes) if gpus else 1
     pending, running, done = list(args.seeds), {}, []
     free = list(range(slots))
@@ -125,9 +127,7 @@ def run_seeds(args: argparse.Namespace, folder: Path) -> list[dict]:
             env = {"OMP_NUM_THREADS": "1", **os.environ}
             if gpus:
                 first = slot * args.processes
-                env["CUDA_VISIBLE_DEVICES"] = ",".join(
-                    str(gpu) for gpu in range(first, first + args.processes)
-                )
+                env["CUDA_VISIBLE_DEVICES"] = ",".join(visible[first : first + args.processes])
             log = (folder / f"seed_{seed}.log").open("w")
             process = subprocess.Popen(
                 recipe_command(seed, args, run_dir),
