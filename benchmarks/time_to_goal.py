@@ -16,7 +16,8 @@ Per seed, from the run's logs:
 - ``env_steps_per_s``: env-steps over training seconds, end to end; and the medians over the
   iterations of the collection, value-estimation and epoch seconds (``collection_seconds``,
   ``estimation_seconds``, ``epochs_seconds``), which with ``iteration_seconds`` give the split;
-- ``final_goal_fraction``: the last evaluation's; ``launch_seconds``: the process's wall clock.
+- ``final_goal_fraction``: the last evaluation's; ``curve``: every evaluation's env-steps,
+  training seconds and goal fraction; ``launch_seconds``: the process's wall clock.
 
 The JSON holds ``device``, ``date``, ``command``, ``seeds`` (one entry per seed), the medians over
 seeds ``env_steps_per_s`` and ``median_seconds_to_goal`` (to the first threshold; null unless
@@ -95,6 +96,8 @@ def summarize(seed: int, scalars: Path, thresholds: list[float], launch_seconds:
     return {
         "seed": seed,
         "to_goal": to_goal,
+        # each evaluation: env-steps, training seconds, goal fraction
+        "curve": [[int(at), training_seconds(at), goal] for at, goal, _ in in_loop],
         "final_goal_fraction": goal_fractions[-1],
         "evaluations": len(evaluations),
         "evaluation_seconds": sum(eval_seconds),

@@ -38,6 +38,7 @@ def test_seconds_to_goal_leave_out_the_evaluations_before(tmp_path):
     assert entry["evaluation_seconds"] == 10.0 and entry["evaluations"] == 2
     assert entry["training_seconds"] == 40.0 and entry["env_steps_per_s"] == 10.0
     assert entry["final_goal_fraction"] == 0.96
+    assert entry["curve"] == [[200, 20.0, 0.92], [400, 40.0, 0.96]]
     assert (entry["iteration_seconds"], entry["collection_seconds"]) == (10.0, 2.0)
     assert (entry["estimation_seconds"], entry["epochs_seconds"]) == (1.0, 7.0)
 
