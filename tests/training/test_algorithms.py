@@ -232,6 +232,53 @@ def test_advantages_and_returns_are_gae_per_agent_computed_by_hand(algo, normali
         torch.testing.assert_close(team_advantage, team_advantage[..., :1, :].expand_as(value))
 
 
+ESTIMATES = {
+    "mapoca": ("state_value", "value_target", ("agents", "baseline"), ("agents", "advantage")),
+    "mappo": (("agents", "state_value"), ("agents", "value_target"), ("agents", "advantage")),
+}
+ESTIMATES["ippo"] = ESTIMATES["mappo"]
+"""What each algorithm's value-estimation pass writes."""
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_the_value_estimation_pass_reads_the_host_once(algo, host_reads):
+    # On CUDA every read waits for the device: the one left is how many states follow an
+    # episode's end (those the critics run on besides the batch's own).
+    trainer = make_trainer(algo)
+    data = trainer.collect()
+    assert data["next", "done"][:, :-1].any()  # an episode ends inside the batch
+    trainer.algorithm.estimate.max_batch = 1  # in pieces
+    trainer._train_mode(False)
+    assert host_reads(trainer.algorithm.estimate, data) == {"aten::nonzero": 1}
+    assert trainer.algorithm.value_normalizer.weight > 0  # the return statistics moved
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_the_value_estimation_pass_gives_the_same_results_whatever_its_pieces(algo):
+    torch.manual_seed(0)
+    networks = make_terrashift_networks(TerraShiftModelConfig.small())
+    config = train_config(algo=algo, num_envs=8, steps_per_iteration=8, minibatches=8)
+    env = make_training_env(ENV, networks, num_envs=8, device=torch.device("cpu"), seed=0)
+    trainer = terrashift.make_trainer(env, networks, config)
+    estimate = trainer.algorithm.estimate
+    assert estimate.max_batch == 4  # four mini-batches of one sequence, not one
+    data = trainer.collect()
+    trainer._train_mode(False)
+    normalizer = trainer.algorithm.value_normalizer
+    statistics = {name: value.clone() for name, value in normalizer.state_dict().items()}
+    results = {}
+    for max_batch in (None, 4, 3, 1):  # whole, two pieces, uneven ones, one sequence each
+        estimate.max_batch = max_batch
+        normalizer.load_state_dict(statistics)  # each pass starts from the same statistics
+        results[max_batch] = estimate(data.clone())
+    # In step mode every element is computed on its own: only the matrix products' blocking
+    # changes with a piece's size, which moves a float32 value by a few units in its last place
+    # (of the products' terms), carried into the returns and the standardised advantages.
+    for result in results.values():
+        for key in ESTIMATES[algo]:
+            torch.testing.assert_close(result[key], results[None][key], rtol=1e-5, atol=1e-5)
+
+
 def test_swapping_the_algorithm_changes_no_other_setting():
     configs = [train_config(algo=algo) for algo in ALGOS]
     shared = {field.name for field in dataclasses.fields(ALGORITHMS["mappo"])}
