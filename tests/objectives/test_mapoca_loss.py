@@ -449,7 +449,9 @@ def test_value_estimation_in_pieces_gives_the_same_results(reuse_root_values):
 
 
 @pytest.mark.parametrize("value_type", [ValueEstimators.GAE, ValueEstimators.TDLambda])
-@pytest.mark.parametrize(("reuse_root_values", "reads"), [(False, {}), (True, {"aten::nonzero": 1})])
+@pytest.mark.parametrize(
+    ("reuse_root_values", "reads"), [(False, {}), (True, {"aten::nonzero": 1})]
+)
 def test_the_value_estimation_pass_reads_nothing_on_the_host(
     value_type, reuse_root_values, reads, host_reads
 ):
