@@ -86,6 +86,10 @@ class MAPOCAValueEstimator:
     ``data["next"]`` only at episode ends and the last step: exact for collected trajectories,
     where ``data["next"]`` at step t is the root of step t + 1, and one network pass cheaper.
 
+    The pass reads nothing back to the host (on CUDA, every read waits for the device), except,
+    with ``reuse_root_values``, how many states follow an episode end: the size of the networks'
+    second batch.
+
     With a :class:`ValueNormalizer` on the loss, the critics' outputs are denormalised for the
     returns and advantages, ``value`` and ``baseline`` are stored as the critics output them,
     ``value_target`` in return units, and the normaliser is updated with the new targets.
