@@ -221,10 +221,12 @@ class EmbeddingCriticEstimate:
     collection's memory exactly (:mod:`terrashift_rl.modules.networks`). V(s_{t+1}) is read
     from step t + 1 within episodes and computed on ``data["next"]`` only where step t ended an
     episode and at the last step, as :class:`~terrashift_rl.objectives.MAPOCAValueEstimator`
-    does with ``reuse_root_values``; the networks run on at most ``max_batch`` rows at a time.
+    does with ``reuse_root_values``, and as it reads nothing on the host but how many states
+    that is. The networks run on at most as many elements at a time as ``max_batch`` rows hold.
 
     The loss's value estimator (a :class:`~torchrl.objectives.value.MultiAgentGAE` without a
-    value network) then reads these values from the data and writes the advantages and returns.
+    value network, in its recursive form) then reads these values from the data and writes the
+    advantages and returns.
     With a :class:`ValueNormalizer` the critic's outputs are denormalised for the GAE, the
     normaliser is updated with the new returns, and the returns are stored normalised, in the
     critic's units, beside the old values as the critic output them.

@@ -109,8 +109,9 @@ def make_trainer(
         )
     # The estimation pass runs without gradients, so it keeps no activations for a backward
     # pass: per env-step it needs about a seventh of a mini-batch update's memory (the medium
-    # network: 70 against 500 MB per 1,000 env-steps). In pieces of 4 mini-batches it stays
-    # near half of an update's peak, and the pieces stay large where mini-batches are small.
+    # network on the CPU: 70 against 500 MB per 1,000 env-steps). In pieces of four
+    # mini-batches it stays near half of an update's peak, in a few large pieces, which its
+    # launches (it runs eagerly) favour.
     max_batch = min(config.num_envs, 4 * math.ceil(config.num_envs / config.minibatches))
     algorithm = config.loss.make(networks, max_batch=max_batch)
     if config.compile:
