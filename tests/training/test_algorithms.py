@@ -3,6 +3,7 @@ finetunes; MAPPO's and IPPO's advantages are GAE's, computed here by hand."""
 
 import dataclasses
 import math
+import warnings
 
 import pytest
 import torch
@@ -251,6 +252,28 @@ def test_the_value_estimation_pass_reads_the_host_once(algo, host_reads):
     trainer._train_mode(False)
     assert host_reads(trainer.algorithm.estimate, data) == {"aten::nonzero": 1}
     assert trainer.algorithm.value_normalizer.weight > 0  # the return statistics moved
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("algo", ALGOS)
+def test_the_value_estimation_pass_waits_for_the_device_once_on_cuda(algo):
+    torch.manual_seed(0)
+    networks = make_terrashift_networks(TerraShiftModelConfig.small()).to("cuda")
+    config = train_config(algo=algo, num_envs=8, steps_per_iteration=8, minibatches=8)
+    env = make_training_env(ENV, networks, num_envs=8, device=torch.device("cuda"), seed=0)
+    trainer = terrashift.make_trainer(env, networks, config)
+    data = trainer.collect()
+    trainer._train_mode(False)
+    torch.cuda.synchronize()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")  # a warning at every synchronising operation
+        try:
+            trainer.algorithm.estimate(data)
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    waits = [str(warning.message) for warning in caught if "synchroniz" in str(warning.message)]
+    assert len(waits) == 1, waits  # how many states follow an episode's end
 
 
 @pytest.mark.parametrize("algo", ALGOS)
