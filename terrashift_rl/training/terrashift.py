@@ -108,9 +108,9 @@ def make_trainer(
             "which env.observe_objects=false leaves out"
         )
     # The estimation pass runs without gradients, so it keeps no activations for a backward
-    # pass: per env-step it needs about a seventh of a mini-batch update's memory (the medium
-    # network on the CPU: 70 against 500 MB per 1,000 env-steps). In pieces of four
-    # mini-batches it stays near half of an update's peak, in a few large pieces, which its
+    # pass: per env-step it needs about a fifth of a mini-batch update's memory (the medium
+    # network's tensors at their peak: 112 against 550 MB per 1,000 env-steps). In pieces of
+    # four mini-batches it stays below an update's peak, in a few large pieces, which its
     # launches (it runs eagerly) favour.
     max_batch = min(config.num_envs, 4 * math.ceil(config.num_envs / config.minibatches))
     algorithm = config.loss.make(networks, max_batch=max_batch)
