@@ -233,6 +233,15 @@ def test_advantages_and_returns_are_gae_per_agent_computed_by_hand(algo, normali
         torch.testing.assert_close(team_advantage, team_advantage[..., :1, :].expand_as(value))
 
 
+def eight_environments(algo: str, device: str, *, minibatches: int) -> OnPolicyTrainer:
+    """A trainer of the small network on eight environments of ``ENV``, eight decisions each."""
+    torch.manual_seed(0)
+    networks = make_terrashift_networks(TerraShiftModelConfig.small()).to(device)
+    config = train_config(algo=algo, num_envs=8, steps_per_iteration=8, minibatches=minibatches)
+    env = make_training_env(ENV, networks, num_envs=8, device=torch.device(device), seed=0)
+    return terrashift.make_trainer(env, networks, config)
+
+
 ESTIMATES = {
     "mapoca": ("state_value", "value_target", ("agents", "baseline"), ("agents", "advantage")),
     **dict.fromkeys(
@@ -259,11 +268,7 @@ def test_the_value_estimation_pass_reads_the_host_once(algo, host_reads):
 @pytest.mark.gpu
 @pytest.mark.parametrize("algo", ALGOS)
 def test_the_value_estimation_pass_waits_for_the_device_once_on_cuda(algo):
-    torch.manual_seed(0)
-    networks = make_terrashift_networks(TerraShiftModelConfig.small()).to("cuda")
-    config = train_config(algo=algo, num_envs=8, steps_per_iteration=8, minibatches=8)
-    env = make_training_env(ENV, networks, num_envs=8, device=torch.device("cuda"), seed=0)
-    trainer = terrashift.make_trainer(env, networks, config)
+    trainer = eight_environments(algo, "cuda", minibatches=8)
     data = trainer.collect()
     trainer._train_mode(False)
     torch.cuda.synchronize()
@@ -280,11 +285,7 @@ def test_the_value_estimation_pass_waits_for_the_device_once_on_cuda(algo):
 
 @pytest.mark.parametrize("algo", ALGOS)
 def test_the_value_estimation_pass_gives_the_same_results_whatever_its_pieces(algo):
-    torch.manual_seed(0)
-    networks = make_terrashift_networks(TerraShiftModelConfig.small())
-    config = train_config(algo=algo, num_envs=8, steps_per_iteration=8, minibatches=8)
-    env = make_training_env(ENV, networks, num_envs=8, device=torch.device("cpu"), seed=0)
-    trainer = terrashift.make_trainer(env, networks, config)
+    trainer = eight_environments(algo, "cpu", minibatches=8)
     estimate = trainer.algorithm.estimate
     assert estimate.max_batch == 4  # four mini-batches of one sequence, not one
     data = trainer.collect()
@@ -318,11 +319,7 @@ def test_swapping_the_algorithm_changes_no_other_setting():
 @pytest.mark.gpu
 @pytest.mark.parametrize("algo", ("mappo", "ippo"))
 def test_ppo_algorithms_replay_the_actor_and_update_eagerly_on_cuda(algo):
-    torch.manual_seed(0)
-    networks = make_terrashift_networks(TerraShiftModelConfig.small()).to("cuda")
-    config = train_config(algo=algo, num_envs=8, steps_per_iteration=8, minibatches=2)
-    env = make_training_env(ENV, networks, num_envs=8, device=torch.device("cuda"), seed=0)
-    trainer = terrashift.make_trainer(env, networks, config)
+    trainer = eight_environments(algo, "cuda", minibatches=2)
     for _ in range(3):  # the third collection replays the captured actor step
         assert math.isfinite(trainer.train_iteration()["loss_total"])
     assert trainer._actor_step.captured
