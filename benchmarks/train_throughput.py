@@ -69,6 +69,15 @@ PHASES = {
     "clipping and step": "gradient norm and clipping",
 }
 """Profiler ranges (innermost first wins) and the rows they give."""
+SYNCHRONISATIONS = (
+    "cudaStreamSynchronize",
+    "cudaDeviceSynchronize",
+    "cudaEventSynchronize",
+    "aten::_local_scalar_dense",  # .item(), bool(tensor)
+    "aten::nonzero",  # boolean indexing: its output's size
+)
+"""Profiled events that make the host wait for the device (the scalar reads only where the
+scalar is on the device)."""
 
 PRECISIONS = ("fp32", "tf32", "bf16")  # tf32: float32 with TensorFloat-32 matrix products
 # compiled: torch.compile without CUDA graphs; compiled-graphs: compiled networks replayed in them
@@ -308,16 +317,19 @@ def profile_update_parts(trainer: OnPolicyTrainer) -> dict:
         else:
             rows["other (loss arithmetic, indexing, copies)"] += kernel_us
     total = sum(rows.values())
-    synchronisations = [
-        event
-        for event in events
-        if event.name in ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize")
-        or event.name == "aten::_local_scalar_dense"
-    ]
+
+    def place(event) -> str:
+        in_pass = any(outer.name == "value estimation" for outer in enclosing(event))
+        return "the estimation pass" if in_pass else "the rest"
+
+    # by where they happen; in the rest, an eager AdamW reads its step counts, which live on the
+    # CPU and wait for nothing
+    counts = collections.Counter(
+        f"{event.name} in {place(event)}" for event in events if event.name in SYNCHRONISATIONS
+    )
     print(f"one update, eager: {total / 1e3:.1f} ms of kernels, {seconds:.2f} s under the profiler")
     for name, kernel_us in rows.most_common():
         print(f"  {name:<45} {kernel_us / 1e3:>8.1f} ms  {kernel_us / total:>6.1%}")
-    counts = collections.Counter(event.name for event in synchronisations)
     print(f"  host synchronisations: {dict(counts)}")
     return {
         "kernel_ms": total / 1e3,

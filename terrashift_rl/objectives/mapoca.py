@@ -34,8 +34,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import LossModule, ValueEstimators, distance_loss
 from torchrl.objectives.value.functional import (
-    vec_generalized_advantage_estimate,
-    vec_td_lambda_return_estimate,
+    generalized_advantage_estimate,
+    td_lambda_return_estimate,
 )
 
 from terrashift_rl.objectives.normalization import ValueNormalizer
@@ -85,6 +85,10 @@ class MAPOCAValueEstimator:
     is read from step t + 1 wherever step t did not end an episode, and the networks run on
     ``data["next"]`` only at episode ends and the last step: exact for collected trajectories,
     where ``data["next"]`` at step t is the root of step t + 1, and one network pass cheaper.
+
+    The pass reads nothing back to the host (on CUDA, every read waits for the device), except,
+    with ``reuse_root_values``, how many states follow an episode end: the size of the networks'
+    second batch.
 
     With a :class:`ValueNormalizer` on the loss, the critics' outputs are denormalised for the
     returns and advantages, ``value`` and ``baseline`` are stored as the critics output them,
@@ -181,9 +185,12 @@ class MAPOCAValueEstimator:
                 fresh = done.squeeze(-1).clone()
                 fresh.select(time_dim, -1).fill_(True)
                 next_state_value = state_value.roll(-1, dims=time_dim)
-                next_state_value[fresh] = self._critics(
-                    next_step[fresh], with_baseline=False, elements=elements
-                )[0]
+                # the pass's one host read: how many (the indices, unlike a mask, size the rest)
+                index = fresh.flatten().nonzero().squeeze(-1)
+                fresh_value, _ = self._critics(
+                    next_step.reshape(-1)[index], with_baseline=False, elements=elements
+                )
+                next_state_value.view(-1, 1).index_copy_(0, index, fresh_value)
             else:
                 next_state_value, _ = self._critics(
                     next_step, with_baseline=False, elements=elements
@@ -199,8 +206,10 @@ class MAPOCAValueEstimator:
         terminated = loss._team_flag(tensordict, "terminated", agent_mask, agent_shape)
         team_reward = team_reward.to(state_value.dtype)
 
+        # the recursions over time, not torchrl's vectorised forms, which split the batch at
+        # its episode ends and so read them on the host
         if self.value_type is ValueEstimators.GAE:
-            _, value_target = vec_generalized_advantage_estimate(
+            _, value_target = generalized_advantage_estimate(
                 self.gamma,
                 self.lmbda,
                 state_value,
@@ -211,7 +220,7 @@ class MAPOCAValueEstimator:
                 time_dim=time_dim,
             )
         else:
-            value_target = vec_td_lambda_return_estimate(
+            value_target = td_lambda_return_estimate(
                 self.gamma,
                 self.lmbda,
                 next_state_value,

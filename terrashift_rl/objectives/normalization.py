@@ -59,19 +59,25 @@ class ValueNormalizer(nn.Module):
 
     @torch.no_grad()
     def update(self, targets: Tensor) -> None:
-        """Moves the statistics towards the mean and mean square of ``targets`` (any shape)."""
+        """Moves the statistics towards the mean and mean square of ``targets`` (any shape).
+        Targets with a non-finite value leave them as they were; without reading anything on
+        the host, so that a pass that calls it makes no host synchronisation (the non-finite
+        targets show in what is computed from them, the losses)."""
         targets = targets.detach().float()
         moments = torch.stack([targets.mean(), targets.square().mean()])
         if self.synchronize:
             dist.all_reduce(moments)
             moments /= dist.get_world_size()
-        # non-finite targets make a moment non-finite: with synchronize, on every process alike
-        if not torch.isfinite(moments).all():
-            raise ValueError("ValueNormalizer.update got non-finite value targets")
+        # non-finite targets make a moment non-finite (with synchronize, on every process
+        # alike): the statistics then stay as they were, decided on the device, not the host
+        finite = torch.isfinite(moments).all()
         keep = self.decay
-        self.mean_estimate.mul_(keep).add_((1.0 - keep) * moments[0])
-        self.square_estimate.mul_(keep).add_((1.0 - keep) * moments[1])
-        self.weight.mul_(keep).add_(1.0 - keep)
+        for estimate, moment in (
+            (self.mean_estimate, moments[0]),
+            (self.square_estimate, moments[1]),
+            (self.weight, 1.0),
+        ):
+            estimate.copy_(torch.where(finite, estimate * keep + (1.0 - keep) * moment, estimate))
 
     def statistics(self) -> tuple[Tensor, Tensor]:
         """(mean, standard deviation): (0, 1) before the first update."""

@@ -38,6 +38,7 @@ a mini-batch's environments (the trainer logs their mean).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import ClassVar
@@ -220,10 +221,12 @@ class EmbeddingCriticEstimate:
     collection's memory exactly (:mod:`terrashift_rl.modules.networks`). V(s_{t+1}) is read
     from step t + 1 within episodes and computed on ``data["next"]`` only where step t ended an
     episode and at the last step, as :class:`~terrashift_rl.objectives.MAPOCAValueEstimator`
-    does with ``reuse_root_values``; the networks run on at most ``max_batch`` rows at a time.
+    does with ``reuse_root_values``, and as it reads nothing on the host but how many states
+    that is. The networks run on at most as many elements at a time as ``max_batch`` rows hold.
 
     The loss's value estimator (a :class:`~torchrl.objectives.value.MultiAgentGAE` without a
-    value network) then reads these values from the data and writes the advantages and returns.
+    value network, in its recursive form) then reads these values from the data and writes the
+    advantages and returns.
     With a :class:`ValueNormalizer` the critic's outputs are denormalised for the GAE, the
     normaliser is updated with the new returns, and the returns are stored normalised, in the
     critic's units, beside the old values as the critic output them.
@@ -233,8 +236,8 @@ class EmbeddingCriticEstimate:
         value_network: trunk + critic, writing the loss's value key.
 
     Keyword Args:
-        max_batch: rows of the collected batch the networks run on at a time; ``None`` runs them
-            on the whole batch.
+        max_batch: the networks run on at most as many elements at a time as this many rows of
+            the collected batch hold; ``None`` runs them on the whole batch.
         value_normalizer: the critic's running return statistics, or ``None``.
     """
 
@@ -255,13 +258,17 @@ class EmbeddingCriticEstimate:
     def __call__(self, data: TensorDictBase) -> TensorDictBase:
         """Writes the old values, returns and advantages into ``data`` ``[N, T]``."""
         value_key = self.loss.tensor_keys.value
+        # pieces of at most as many elements as max_batch rows hold
+        elements = None if self.max_batch is None else self.max_batch * math.prod(data.shape[1:])
         with set_exploration_type(ExplorationType.DETERMINISTIC), set_recurrent_mode(False):
-            value = self._values(data.exclude("next"))
+            value = self._values(data.exclude("next"), elements)
             # runs on "next" where step t + 1's root is another episode or outside the batch
             fresh = data.get(("next", "done")).squeeze(-1).clone()
             fresh[..., -1] = True
             next_value = value.roll(-1, dims=data.ndim - 1)
-            next_value[fresh] = self._values(data.get("next")[fresh])
+            index = fresh.flatten().nonzero().squeeze(-1)  # the pass's one host read
+            fresh_value = self._values(data.get("next").reshape(-1)[index], elements)
+            next_value.flatten(0, data.ndim - 1).index_copy_(0, index, fresh_value)
         stored = value
         normalizer = self.value_normalizer
         if normalizer is not None:
@@ -277,9 +284,13 @@ class EmbeddingCriticEstimate:
             data.set(self.loss.tensor_keys.value_target, normalizer.normalize(value_target))
         return data
 
-    def _values(self, tensordict: TensorDictBase) -> Tensor:
+    def _values(self, tensordict: TensorDictBase, elements: int | None) -> Tensor:
+        """The critic on ``tensordict`` in pieces of whole leading rows that hold at most
+        ``elements`` batch elements (at least one row)."""
         key = self.loss.tensor_keys.value
-        rows = tensordict.shape[0] if self.max_batch is None else self.max_batch
+        rows = tensordict.shape[0]
+        if elements is not None:
+            rows = max(1, elements // math.prod(tensordict.shape[1:]))
         pieces = [self.value_network(piece.copy()).get(key) for piece in tensordict.split(rows)]
         return torch.cat(pieces)
 
@@ -364,11 +375,16 @@ def _make_ppo(
         # the networks hold their parameters, shared with the trainer's optimiser
         functional=False,
     ).to(device)
-    loss.make_value_estimator(
-        MultiAgentGAE(
-            gamma=config.gamma, lmbda=config.lmbda, value_network=None, average_gae=True
-        ).to(device)
+    # vectorized=False: the recursion over time, where the vectorised form splits the batch at
+    # its episode ends and so reads them on the host
+    estimator = MultiAgentGAE(
+        gamma=config.gamma,
+        lmbda=config.lmbda,
+        value_network=None,
+        average_gae=True,
+        vectorized=False,
     )
+    loss.make_value_estimator(estimator.to(device))
     # after the estimator, so that it receives the keys too
     loss.set_keys(
         value=AGENT_VALUE,

@@ -448,6 +448,29 @@ def test_value_estimation_in_pieces_gives_the_same_results(reuse_root_values):
         loss.make_value_estimator(ValueEstimators.GAE, max_batch=0)
 
 
+@pytest.mark.parametrize("value_type", [ValueEstimators.GAE, ValueEstimators.TDLambda])
+@pytest.mark.parametrize(
+    ("reuse_root_values", "reads"), [(False, {}), (True, {"aten::nonzero": 1})]
+)
+def test_the_value_estimation_pass_reads_nothing_on_the_host(
+    value_type, reuse_root_values, reads, host_reads
+):
+    # On CUDA each read waits for the device. The pass makes none, in pieces, with masks and
+    # return statistics, but one where it reuses root values: how many states follow an episode's
+    # end (the second pass's size).
+    modules = make_modules()
+    actor, value, baseline, _ = wrap(modules)
+    data = make_batch(actor)
+    assert data["next", "done"][:, :-1].any()  # an episode ends inside the batch
+    loss = make_loss(
+        actor, value, baseline, normalize_advantage=True, value_normalizer=ValueNormalizer()
+    ).make_value_estimator(
+        value_type, gamma=GAMMA, lmbda=LMBDA, max_batch=1, reuse_root_values=reuse_root_values
+    )
+    assert host_reads(loss.value_estimator, data) == reads
+    assert data["agents", "advantage"].isfinite().all()
+
+
 def test_reusing_root_values_gives_the_same_results():
     modules = make_modules()
     actor, value, baseline, _ = wrap(modules)

@@ -3,6 +3,7 @@ finetunes; MAPPO's and IPPO's advantages are GAE's, computed here by hand."""
 
 import dataclasses
 import math
+import warnings
 
 import pytest
 import torch
@@ -232,6 +233,78 @@ def test_advantages_and_returns_are_gae_per_agent_computed_by_hand(algo, normali
         torch.testing.assert_close(team_advantage, team_advantage[..., :1, :].expand_as(value))
 
 
+def eight_environments(algo: str, device: str, *, minibatches: int) -> OnPolicyTrainer:
+    """A trainer of the small network on eight environments of ``ENV``, eight decisions each."""
+    torch.manual_seed(0)
+    networks = make_terrashift_networks(TerraShiftModelConfig.small()).to(device)
+    config = train_config(algo=algo, num_envs=8, steps_per_iteration=8, minibatches=minibatches)
+    env = make_training_env(ENV, networks, num_envs=8, device=torch.device(device), seed=0)
+    return terrashift.make_trainer(env, networks, config)
+
+
+ESTIMATES = {
+    "mapoca": ("state_value", "value_target", ("agents", "baseline"), ("agents", "advantage")),
+    **dict.fromkeys(
+        ("mappo", "ippo"),
+        (("agents", "state_value"), ("agents", "value_target"), ("agents", "advantage")),
+    ),
+}
+"""What each algorithm's value-estimation pass writes."""
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_the_value_estimation_pass_reads_the_host_once(algo, host_reads):
+    # On CUDA every read waits for the device: the one left is how many states follow an
+    # episode's end (those the critics run on besides the batch's own).
+    trainer = make_trainer(algo)
+    data = trainer.collect()
+    assert data["next", "done"][:, :-1].any()  # an episode ends inside the batch
+    trainer.algorithm.estimate.max_batch = 1  # in pieces
+    trainer._train_mode(False)
+    assert host_reads(trainer.algorithm.estimate, data) == {"aten::nonzero": 1}
+    assert trainer.algorithm.value_normalizer.weight > 0  # the return statistics moved
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("algo", ALGOS)
+def test_the_value_estimation_pass_waits_for_the_device_once_on_cuda(algo):
+    trainer = eight_environments(algo, "cuda", minibatches=8)
+    data = trainer.collect()
+    trainer._train_mode(False)
+    torch.cuda.synchronize()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")  # a warning at every synchronising operation
+        try:
+            trainer.algorithm.estimate(data)
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    waits = [str(warning.message) for warning in caught if "synchroniz" in str(warning.message)]
+    assert len(waits) == 1, waits  # how many states follow an episode's end
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_the_value_estimation_pass_gives_the_same_results_whatever_its_pieces(algo):
+    trainer = eight_environments(algo, "cpu", minibatches=8)
+    estimate = trainer.algorithm.estimate
+    assert estimate.max_batch == 4  # four mini-batches of one sequence, not one
+    data = trainer.collect()
+    trainer._train_mode(False)
+    normalizer = trainer.algorithm.value_normalizer
+    statistics = {name: value.clone() for name, value in normalizer.state_dict().items()}
+    results = {}
+    for max_batch in (None, 4, 3, 1):  # whole, two pieces, uneven ones, one sequence each
+        estimate.max_batch = max_batch
+        normalizer.load_state_dict(statistics)  # each pass starts from the same statistics
+        results[max_batch] = estimate(data.clone())
+    # In step mode every element is computed on its own: only the matrix products' blocking
+    # changes with a piece's size, a rounding difference (a few units in the last place of a
+    # float32 product), carried into the returns and the standardised advantages.
+    for result in results.values():
+        for key in ESTIMATES[algo]:
+            torch.testing.assert_close(result[key], results[None][key], rtol=1e-5, atol=1e-5)
+
+
 def test_swapping_the_algorithm_changes_no_other_setting():
     configs = [train_config(algo=algo) for algo in ALGOS]
     shared = {field.name for field in dataclasses.fields(ALGORITHMS["mappo"])}
@@ -246,11 +319,7 @@ def test_swapping_the_algorithm_changes_no_other_setting():
 @pytest.mark.gpu
 @pytest.mark.parametrize("algo", ("mappo", "ippo"))
 def test_ppo_algorithms_replay_the_actor_and_update_eagerly_on_cuda(algo):
-    torch.manual_seed(0)
-    networks = make_terrashift_networks(TerraShiftModelConfig.small()).to("cuda")
-    config = train_config(algo=algo, num_envs=8, steps_per_iteration=8, minibatches=2)
-    env = make_training_env(ENV, networks, num_envs=8, device=torch.device("cuda"), seed=0)
-    trainer = terrashift.make_trainer(env, networks, config)
+    trainer = eight_environments(algo, "cuda", minibatches=2)
     for _ in range(3):  # the third collection replays the captured actor step
         assert math.isfinite(trainer.train_iteration()["loss_total"])
     assert trainer._actor_step.captured
