@@ -334,10 +334,11 @@ def main(argv: list[str] | None = None) -> None:
     seconds = {spec: {method: [] for method in args.methods} for spec in argvs}
     command = "python benchmarks/vmas_parity.py " + " ".join(sys.argv[1:] if argv is None else argv)
     date, device = datetime.date.today().isoformat(), device_name(torch.device(args.device))
-    settings = {}
-    for spec, spec_argv in argvs.items():
-        example_args = _example().parse_args(spec_argv)
-        settings[spec] = {key: getattr(example_args, key) for key in TRAINING_ARGS}
+    parse = _example().parse_args
+    settings = {
+        spec: {key: getattr(parse(spec_argv), key) for key in TRAINING_ARGS}
+        for spec, spec_argv in argvs.items()
+    }
     failed: list[str] = []
 
     def result(spec: tuple[str, int | None]) -> dict:

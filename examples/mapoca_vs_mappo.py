@@ -284,9 +284,8 @@ def train(
         mean_rewards.append(data.get(("next", *REWARD)).mean().item())
         samples = data.reshape(-1)
         for _ in range(epochs):
-            for index in torch.randperm(samples.numel(), device=samples.device).split(
-                minibatch_size
-            ):
+            order = torch.randperm(samples.numel(), device=samples.device)
+            for index in order.split(minibatch_size):
                 losses = loss(samples[index])
                 total = sum(value for key, value in losses.items() if key.startswith("loss_"))
                 optimiser.zero_grad()
