@@ -1,8 +1,9 @@
 """MAPOCALoss against torchrl's MAPPOLoss on cooperative VMAS scenarios: final reward and AUC.
 
     pip install -e ".[vmas]"
-    python benchmarks/vmas_parity.py --scenarios balance:8 navigation:8 transport:8 wheel:8 \
-        --seeds 0 1 2 3 4 --device cuda --deadline 480 --out-dir results/vmas
+    python benchmarks/vmas_parity.py --scenarios balance:8 navigation:8 reverse_transport:8 \
+        wheel:8 --seeds 0 1 2 3 4 --device cuda --minibatch-size 400 --deadline 420 \
+        --out-dir results/vmas
     python benchmarks/vmas_parity.py --table results/vmas/vmas_parity_*.json
 
 Every run is ``examples/mapoca_vs_mappo.py``'s ``run`` (same actor, frames, loop and optimiser
