@@ -136,16 +136,24 @@ class TeamNavigationEnv(EnvBase):
 
 
 def make_env(
-    name: str, *, num_envs: int, episode_steps: int, seed: int, num_agents: int | None = None
+    name: str,
+    *,
+    num_envs: int,
+    episode_steps: int,
+    seed: int,
+    num_agents: int | None = None,
+    device: str = "cpu",
 ) -> EnvBase:
-    """``"team_navigation"`` or ``"vmas:<scenario>"`` (needs ``pip install vmas``), with
-    ``num_agents`` agents (the scenario's default if None)."""
+    """``"team_navigation"`` (on the CPU) or ``"vmas:<scenario>"`` (needs ``pip install vmas``;
+    on ``device``), with ``num_agents`` agents (the scenario's default if None)."""
     agents = (
         {}
         if num_agents is None
         else {"num_agents" if name == "team_navigation" else "n_agents": num_agents}
     )
     if name == "team_navigation":
+        if torch.device(device).type != "cpu":
+            raise ValueError(f"team_navigation runs on the CPU, got device {device!r}")
         env = TeamNavigationEnv(num_envs, episode_steps=episode_steps, **agents)
     elif name.startswith("vmas:"):
         from torchrl.envs.libs.vmas import VmasEnv
@@ -155,7 +163,7 @@ def make_env(
             num_envs=num_envs,
             continuous_actions=True,
             max_steps=episode_steps,
-            device="cpu",
+            device=device,
             **agents,
         )
     else:
@@ -245,12 +253,14 @@ def train(
     lmbda: float,
     max_grad_norm: float = 1.0,
     counterfactual_warmup: int = 0,
+    deadline: float | None = None,
 ) -> list[float]:
     """Trains ``loss`` on ``env``; returns the mean team reward per step of every batch.
 
     With ``counterfactual_warmup`` n > 0 (MAPOCALoss only), the loss's ``counterfactual_weight``
     rises linearly from 0 at the first batch to 1 at batch n: the advantages start as G - V and
-    end as MA-POCA's counterfactual G - b_i.
+    end as MA-POCA's counterfactual G - b_i. With a ``deadline`` (a ``time.time()``), training
+    stops after the first update that ends past it, the curve then shorter than ``iterations``.
     """
     loss.make_value_estimator(loss.default_value_estimator, gamma=gamma, lmbda=lmbda)
     optimiser = torch.optim.Adam(loss.parameters(), lr=lr)
@@ -274,7 +284,8 @@ def train(
         mean_rewards.append(data.get(("next", *REWARD)).mean().item())
         samples = data.reshape(-1)
         for _ in range(epochs):
-            for index in torch.randperm(samples.numel()).split(minibatch_size):
+            order = torch.randperm(samples.numel(), device=samples.device)
+            for index in order.split(minibatch_size):
                 losses = loss(samples[index])
                 total = sum(value for key, value in losses.items() if key.startswith("loss_"))
                 optimiser.zero_grad()
@@ -282,12 +293,22 @@ def train(
                 nn.utils.clip_grad_norm_(loss.parameters(), max_grad_norm)
                 optimiser.step()
         collector.update_policy_weights_()
+        if deadline is not None and time.time() > deadline:
+            break
     collector.shutdown()
     return mean_rewards
 
 
-def run(method: str, *, env_name: str, seed: int, args: argparse.Namespace) -> list[float]:
-    """One training run of ``method`` ("MAPOCA" or "MAPPO") on a fresh environment."""
+def run(
+    method: str,
+    *,
+    env_name: str,
+    seed: int,
+    args: argparse.Namespace,
+    deadline: float | None = None,
+) -> list[float]:
+    """One training run of ``method`` ("MAPOCA" or "MAPPO") on a fresh environment, on
+    ``args.device``; ``deadline`` as :func:`train`'s."""
     torch.manual_seed(seed)
     env = make_env(
         env_name,
@@ -295,8 +316,9 @@ def run(method: str, *, env_name: str, seed: int, args: argparse.Namespace) -> l
         episode_steps=args.episode_steps,
         seed=seed,
         num_agents=args.agents,
+        device=args.device,
     )
-    actor = make_actor(env, width=args.width, depth=args.depth)
+    actor = make_actor(env, width=args.width, depth=args.depth).to(args.device)
     loss = LOSSES[method](
         env,
         actor,
@@ -304,7 +326,7 @@ def run(method: str, *, env_name: str, seed: int, args: argparse.Namespace) -> l
         depth=args.critic_depth,
         clip_epsilon=0.2,
         entropy_coeff=args.entropy_coeff,
-    )
+    ).to(args.device)
     return train(
         loss,
         env,
@@ -316,6 +338,7 @@ def run(method: str, *, env_name: str, seed: int, args: argparse.Namespace) -> l
         gamma=args.gamma,
         lmbda=args.lmbda,
         counterfactual_warmup=args.counterfactual_warmup if method == "MAPOCA" else 0,
+        deadline=deadline,
     )
 
 
@@ -327,6 +350,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--iterations", type=int, default=30)
     parser.add_argument(
         "--agents", type=int, default=None, help="agents in the team (the task's default: None)"
+    )
+    parser.add_argument(
+        "--device", default="cpu", help="where VMAS and the networks run (team_navigation: cpu)"
     )
     parser.add_argument("--num-envs", type=int, default=32)
     parser.add_argument("--episode-steps", type=int, default=20)

@@ -140,7 +140,7 @@ for method, curve in rewards.items():
 # %%
 # The mean team reward per step rises from about zero, random motion's, as the agents learn to
 # head for their goals. One seed and a small budget make this a demonstration, not a benchmark:
-# ``python benchmarks/vmas_parity.py --scenario navigation`` compares the two over six seeds of
+# ``python benchmarks/vmas_parity.py --scenarios navigation`` compares the two over six seeds of
 # 100 iterations, final reward and area under the curve. Besides the credit assignment, the
 # comparison also sets the critics apart: attention over the agents for MA-POCA, an MLP on their
 # concatenated observations for MAPPO.

@@ -70,6 +70,8 @@ def test_team_navigation_truncates_episodes_and_resets_only_those_asked(env):
 def test_unknown_environment_is_refused(example):
     with pytest.raises(ValueError, match="team_navigation or vmas:<scenario>"):
         example.make_env("navigation", num_envs=2, episode_steps=3, seed=0)
+    with pytest.raises(ValueError, match="team_navigation runs on the CPU, got device 'cuda'"):
+        example.make_env("team_navigation", num_envs=2, episode_steps=3, seed=0, device="cuda")
 
 
 def test_mapoca_critics_split_the_hidden_layers_of_mappos_critic_around_the_attention(example):
