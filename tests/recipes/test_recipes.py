@@ -584,6 +584,45 @@ def test_ctrl_c_checkpoints_exits_in_seconds_and_prints_the_command_that_resumes
 
 
 @pytest.mark.slow
+def test_a_second_ctrl_c_quits_at_once_keeping_the_last_checkpoint_and_its_command(tmp_path):
+    # iterations of 1,024 decisions: the second signal lands before the first one is answered
+    overrides = ["run.total_env_steps=1000000", "run.checkpoint_every=1", "train.num_envs=128"]
+    command = [sys.executable, str(RECIPES / "mapoca_pretrain.py"), "--config-name", "smoke"]
+    interrupted = subprocess.Popen(
+        [*command, *overrides, "hydra.run.dir=k"],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # a terminal's Ctrl-C signals the whole process group
+    )
+    last, log = tmp_path / "k/checkpoints/last.pt", tmp_path / "k/mapoca_pretrain.log"
+    try:
+        wait_for(last.exists, "first checkpoint")
+        os.killpg(interrupted.pid, signal.SIGINT)
+        wait_for(lambda: "SIGINT: stopping" in log.read_text(), "answer to the first Ctrl-C")
+        os.killpg(interrupted.pid, signal.SIGINT)
+        signalled = time.monotonic()
+        stdout, stderr = interrupted.communicate(timeout=600)
+        exit_s = time.monotonic() - signalled
+    finally:
+        interrupted.kill()
+    assert interrupted.returncode == 130, stderr
+    assert exit_s < 30, f"exited {exit_s:.0f} s after the second Ctrl-C"  # a hang guard
+    (said,) = [line for line in stdout.splitlines() if line.startswith("interrupted during ")]
+    assert said.endswith(f"; {last.relative_to(tmp_path)} is the last checkpoint")
+    stopped = load_checkpoint(last)  # a whole one: written before, never half-written
+    assert stopped["iteration"] >= 1
+    (line,) = [line for line in stdout.splitlines() if line.startswith("resume with: ")]
+    assert shlex.split(line.removeprefix("resume with: "))[2:] == [
+        "--config-name",
+        "smoke",
+        *overrides,
+        f"run.resume={last.relative_to(tmp_path)}",
+    ]
+
+
+@pytest.mark.slow
 def test_best_checkpoint_and_snapshots_hold_the_weights_they_name(tmp_path):
     result = run(
         "mapoca_pretrain.py",
