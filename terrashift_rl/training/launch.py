@@ -75,19 +75,27 @@ def resolve_device(name: Any, key: str) -> torch.device:
 def start_warp(device: torch.device) -> None:
     """Initialises Warp for the run's ``device``. On the CPU its native library's start is kept
     off the terminal: it would print that it found no CUDA driver, which the run has said
-    already (a Python error of Warp's start still raises)."""
+    already (a Python error of Warp's start still raises). Says so when Warp's kernel cache
+    holds none of the simulator's kernels yet (a first run on the machine, or with this Warp
+    version): the first environment then waits while Warp compiles them, silently."""
     if device.type != "cpu":
         wp.init()
-        return
-    sys.stderr.flush()
-    terminal, nothing = os.dup(2), os.open(os.devnull, os.O_WRONLY)
-    os.dup2(nothing, 2)
-    try:
-        wp.init()
-    finally:
-        os.dup2(terminal, 2)
-        os.close(terminal)
-        os.close(nothing)
+    else:
+        sys.stderr.flush()
+        terminal, nothing = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+        os.dup2(nothing, 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(terminal, 2)
+            os.close(terminal)
+            os.close(nothing)
+    cache = Path(wp.config.kernel_cache_dir)
+    if distributed.is_main_process() and not any(cache.glob("*terrashift_rl*")):
+        log.info(
+            f"Warp compiles the simulator's kernels into {cache} before the first step, once "
+            "(on two CPU cores about 10 s; later runs load them)"
+        )
 
 
 def run_folder(resume: str | None, fresh: str) -> str:
