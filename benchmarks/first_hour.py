@@ -8,9 +8,12 @@ and left ``checkpoints/last.pt``; then runs ``python recipes/evaluate.py
 checkpoint=<run>/checkpoints/last.pt`` the same way. Each time is given as wall clock and as
 the processor time (user + sys) the process had used by then: on a shared machine the wall
 clock grows with the other work, the processor time much less. The load average is noted
-before and after each command. Linux only (``/proc``). Prints a table and writes JSON.
+before and after each command. ``--cold-kernel-cache`` gives both an empty Warp kernel cache
+(``WARP_CACHE_PATH``), as on a machine's first run. Linux only (``/proc``). Prints a table and
+writes JSON.
 
     python benchmarks/first_hour.py
+    python benchmarks/first_hour.py --cold-kernel-cache
     python benchmarks/first_hour.py --interrupt-after 5 --out first_hour.json
 """
 
@@ -145,11 +148,17 @@ def main() -> None:
         default=10.0,
         help="seconds after the first progress update to press Ctrl-C",
     )
+    parser.add_argument(
+        "--cold-kernel-cache", action="store_true", help="an empty Warp kernel cache, as at first"
+    )
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    out = args.out or RESULTS / f"first_hour_{device.type}.json"
+    cold = "_cold_kernel_cache" if args.cold_kernel_cache else ""
+    out = args.out or RESULTS / f"first_hour_{device.type}{cold}.json"
     folder = Path(tempfile.mkdtemp(prefix="first_hour_"))
+    if args.cold_kernel_cache:
+        os.environ["WARP_CACHE_PATH"] = str(folder / "warp_cache")  # the commands inherit it
     python = sys.executable
     pretrain = timed_in_terminal(
         [python, str(ROOT / "recipes/mapoca_pretrain.py")],
@@ -188,6 +197,7 @@ def main() -> None:
         {
             **run_header(device),
             "cores": os.cpu_count(),
+            "cold_kernel_cache": args.cold_kernel_cache,
             "folder": str(folder),
             "pretrain": pretrain,
             "resume_command": resume and resume.group(1).strip(),
