@@ -25,6 +25,7 @@ import pty
 import re
 import resource
 import select
+import shlex
 import signal
 import struct
 import subprocess
@@ -159,19 +160,20 @@ def main() -> None:
     folder = Path(tempfile.mkdtemp(prefix="first_hour_"))
     if args.cold_kernel_cache:
         os.environ["WARP_CACHE_PATH"] = str(folder / "warp_cache")  # the commands inherit it
-    python = sys.executable
+    recipe = str(ROOT / "recipes/mapoca_pretrain.py")
     pretrain = timed_in_terminal(
-        [python, str(ROOT / "recipes/mapoca_pretrain.py")],
+        [sys.executable, recipe],
         cwd=folder,
         marks=PRETRAIN_MARKS,
         interrupt=("first progress update", args.interrupt_after),
     )
     last = next(folder.glob("outputs/*/*/checkpoints/last.pt"), None)
-    resume = re.search(r"resume with: (.*)", pretrain["output"])
+    resume = f"resume with: {shlex.join(['python', recipe])} run.resume="  # the recipe's words
+    resumable = last is not None and resume in pretrain["output"]
     evaluate = None
     if last is not None:
         evaluate = timed_in_terminal(
-            [python, str(ROOT / "recipes/evaluate.py"), f"checkpoint={last}"],
+            [sys.executable, str(ROOT / "recipes/evaluate.py"), f"checkpoint={last}"],
             cwd=folder,
             marks=EVALUATE_MARKS,
         )
@@ -186,8 +188,8 @@ def main() -> None:
         print(table_row([name, *cells]))
     print(
         f"load average {pretrain['load_average'][0]:.2f} before, "
-        f"{(evaluate or pretrain)['load_average'][1]:.2f} after; resume command "
-        f"{'printed' if resume else 'missing'}; last.pt {'written' if last else 'missing'}"
+        f"{(evaluate or pretrain)['load_average'][1]:.2f} after; resume command and last.pt "
+        f"{'there' if resumable else 'missing'}"
     )
     for result in (pretrain, evaluate):
         if result is not None:
@@ -198,10 +200,8 @@ def main() -> None:
             **run_header(device),
             "cores": os.cpu_count(),
             "cold_kernel_cache": args.cold_kernel_cache,
-            "folder": str(folder),
             "pretrain": pretrain,
-            "resume_command": resume and resume.group(1).strip(),
-            "last_checkpoint": last and str(last),
+            "resume_command_and_last_pt": resumable,
             "evaluate": evaluate,
         },
     )
