@@ -324,11 +324,16 @@ def check_warp_cache() -> None:
 def refusals_end_the_run() -> Iterator[None]:
     """Ends the process with exit status 1 and the message alone, without a traceback, when the
     block refuses what it was given (a ``ValueError``: a setting, a checkpoint, a run folder)
-    or cannot write or read a file (an ``OSError``, which names it). ``HYDRA_FULL_ERROR=1``
-    keeps the traceback, as Hydra's own errors do."""
+    or cannot write or read a file (an ``OSError``, which names it); with exit status 130 and
+    the line ``interrupted`` when Ctrl-C reaches it (one during a run's set-up, before the
+    run's own handler takes over, or during an evaluation). ``HYDRA_FULL_ERROR=1`` keeps the
+    traceback, as Hydra's own errors do."""
     try:
         yield
-    except (ValueError, OSError) as error:
+    except (ValueError, OSError, KeyboardInterrupt) as error:
         if os.environ.get("HYDRA_FULL_ERROR") == "1":
             raise
+        if isinstance(error, KeyboardInterrupt):
+            log.info("interrupted")
+            raise SystemExit(130) from None
         raise SystemExit(f"error: {error}") from None

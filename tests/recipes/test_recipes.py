@@ -584,9 +584,15 @@ def test_ctrl_c_checkpoints_exits_in_seconds_and_prints_the_command_that_resumes
 
 
 @pytest.mark.slow
-def test_a_second_ctrl_c_quits_at_once_keeping_the_last_checkpoint_and_its_command(tmp_path):
-    # iterations of 1,024 decisions: the second signal lands before the first one is answered
-    overrides = ["run.total_env_steps=1000000", "run.checkpoint_every=1", "train.num_envs=128"]
+@pytest.mark.parametrize("checkpointed", [True, False])
+def test_a_second_ctrl_c_quits_at_once_saying_what_it_keeps(tmp_path, checkpointed):
+    # iterations of 1,024 decisions (8,192 for the first, never checkpointed): the second signal
+    # lands in the iteration that the first one lets finish
+    overrides = ["run.total_env_steps=1000000", "train.num_envs=128"]
+    if checkpointed:
+        overrides.append("run.checkpoint_every=1")
+    else:
+        overrides += ["run.checkpoint_every=1000", "train.steps_per_iteration=64"]
     command = [sys.executable, str(RECIPES / "mapoca_pretrain.py"), "--config-name", "smoke"]
     interrupted = subprocess.Popen(
         [*command, *overrides, "hydra.run.dir=k"],
@@ -598,7 +604,10 @@ def test_a_second_ctrl_c_quits_at_once_keeping_the_last_checkpoint_and_its_comma
     )
     last, log = tmp_path / "k/checkpoints/last.pt", tmp_path / "k/mapoca_pretrain.log"
     try:
-        wait_for(last.exists, "first checkpoint")
+        if checkpointed:
+            wait_for(last.exists, "first checkpoint")
+        else:
+            wait_for(lambda: log.exists() and "env-steps" in log.read_text(), "run line")
         os.killpg(interrupted.pid, signal.SIGINT)
         wait_for(lambda: "SIGINT: stopping" in log.read_text(), "answer to the first Ctrl-C")
         os.killpg(interrupted.pid, signal.SIGINT)
@@ -610,10 +619,14 @@ def test_a_second_ctrl_c_quits_at_once_keeping_the_last_checkpoint_and_its_comma
     assert interrupted.returncode == 130, stderr
     assert exit_s < 30, f"exited {exit_s:.0f} s after the second Ctrl-C"  # a hang guard
     (said,) = [line for line in stdout.splitlines() if line.startswith("interrupted during ")]
+    resumes = [line for line in stdout.splitlines() if line.startswith("resume with: ")]
+    if not checkpointed:
+        assert said == "interrupted during the iteration, before a checkpoint was written"
+        assert not last.exists() and resumes == []
+        return
     assert said.endswith(f"; {last.relative_to(tmp_path)} is the last checkpoint")
-    stopped = load_checkpoint(last)  # a whole one: written before, never half-written
-    assert stopped["iteration"] >= 1
-    (line,) = [line for line in stdout.splitlines() if line.startswith("resume with: ")]
+    assert load_checkpoint(last)["iteration"] >= 1  # a whole one: written before, never half
+    (line,) = resumes
     assert shlex.split(line.removeprefix("resume with: "))[2:] == [
         "--config-name",
         "smoke",

@@ -13,6 +13,7 @@ from terrashift_rl.training import load_checkpoint
 from terrashift_rl.training.checkpoint import check_action_mode, update_best
 from terrashift_rl.training.launch import (
     cpu_overrides,
+    refusals_end_the_run,
     resolve_device,
     size_for_the_machine,
     start_warp,
@@ -79,6 +80,17 @@ def test_a_kernel_cache_without_the_simulators_kernels_is_announced(monkeypatch,
         f"Warp compiles the simulator's kernels into {tmp_path} before the first step, once (on "
         "two CPU cores about 10 s; later runs load them)"
     ]
+
+
+def test_a_ctrl_c_outside_the_runs_own_handler_ends_it_in_one_line(monkeypatch, caplog):
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    with caplog.at_level("INFO"), pytest.raises(SystemExit) as ended, refusals_end_the_run():
+        raise KeyboardInterrupt  # during set-up or an evaluation: no traceback
+    assert ended.value.code == 130
+    assert caplog.messages == ["interrupted"]
+    monkeypatch.setenv("HYDRA_FULL_ERROR", "1")
+    with pytest.raises(KeyboardInterrupt), refusals_end_the_run():
+        raise KeyboardInterrupt  # kept, with its traceback, where Hydra keeps its errors'
 
 
 def test_a_checkpoint_is_refused_on_a_scene_with_other_actions():
