@@ -1,13 +1,13 @@
 """A newcomer's first minutes: the README's commands timed as a terminal shows them.
 
-Runs ``python recipes/mapoca_pretrain.py`` in a pseudo-terminal in a fresh folder and notes when
-its first line, its run line (the step target) and its first progress update appear; presses
-Ctrl-C (SIGINT to the process group, as a terminal does) some seconds after the first update
-and notes how long the run takes to exit, and whether it printed the command that resumes it
-and left ``checkpoints/last.pt``; then runs ``python recipes/evaluate.py
+Runs ``python recipes/mapoca_pretrain.py`` in a pseudo-terminal in a temporary folder (removed
+after) and notes when its first line, its run line (the step target) and its first progress
+update appear; presses Ctrl-C (SIGINT to the process group, as a terminal does) some seconds
+after the first update and notes how long the run takes to exit, and whether it printed the
+command that resumes it and left ``checkpoints/last.pt``; then runs ``python recipes/evaluate.py
 checkpoint=<run>/checkpoints/last.pt`` the same way. Each time is given as wall clock and as
 the processor time (user + sys) the process had used by then: on a shared machine the wall
-clock grows with the other work, the processor time much less. The load average is noted
+clock grows with the other work, the processor time less. The load average is noted
 before and after each command. ``--cold-kernel-cache`` gives both an empty Warp kernel cache
 (``WARP_CACHE_PATH``), as on a machine's first run. Linux only (``/proc``). Prints a table and
 writes JSON.
@@ -141,6 +141,29 @@ def _read(terminal: int) -> str:
         return ""
 
 
+def newcomers_commands(folder: Path, interrupt_after: float) -> tuple[dict, dict | None, bool]:
+    """The main job, interrupted ``interrupt_after`` seconds after its first progress update,
+    then the evaluation of its ``last.pt`` (None without one), both run in ``folder``, timed by
+    :func:`timed_in_terminal`; and whether the job printed the command that resumes it."""
+    recipe = str(ROOT / "recipes/mapoca_pretrain.py")
+    pretrain = timed_in_terminal(
+        [sys.executable, recipe],
+        cwd=folder,
+        marks=PRETRAIN_MARKS,
+        interrupt=("first progress update", interrupt_after),
+    )
+    last = next(folder.glob("outputs/*/*/checkpoints/last.pt"), None)
+    resume = f"resume with: {shlex.join(['python', recipe])} run.resume="  # the recipe's words
+    evaluate = None
+    if last is not None:
+        evaluate = timed_in_terminal(
+            [sys.executable, str(ROOT / "recipes/evaluate.py"), f"checkpoint={last}"],
+            cwd=folder,
+            marks=EVALUATE_MARKS,
+        )
+    return pretrain, evaluate, last is not None and resume in pretrain["output"]
+
+
 def main() -> None:
     parser = benchmark_parser(__doc__)
     parser.add_argument(
@@ -157,26 +180,10 @@ def main() -> None:
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     cold = "_cold_kernel_cache" if args.cold_kernel_cache else ""
     out = args.out or RESULTS / f"first_hour_{device.type}{cold}.json"
-    folder = Path(tempfile.mkdtemp(prefix="first_hour_"))
-    if args.cold_kernel_cache:
-        os.environ["WARP_CACHE_PATH"] = str(folder / "warp_cache")  # the commands inherit it
-    recipe = str(ROOT / "recipes/mapoca_pretrain.py")
-    pretrain = timed_in_terminal(
-        [sys.executable, recipe],
-        cwd=folder,
-        marks=PRETRAIN_MARKS,
-        interrupt=("first progress update", args.interrupt_after),
-    )
-    last = next(folder.glob("outputs/*/*/checkpoints/last.pt"), None)
-    resume = f"resume with: {shlex.join(['python', recipe])} run.resume="  # the recipe's words
-    resumable = last is not None and resume in pretrain["output"]
-    evaluate = None
-    if last is not None:
-        evaluate = timed_in_terminal(
-            [sys.executable, str(ROOT / "recipes/evaluate.py"), f"checkpoint={last}"],
-            cwd=folder,
-            marks=EVALUATE_MARKS,
-        )
+    with tempfile.TemporaryDirectory(prefix="first_hour_") as folder:
+        if args.cold_kernel_cache:  # the commands inherit it
+            os.environ["WARP_CACHE_PATH"] = str(Path(folder) / "warp_cache")
+        pretrain, evaluate, resumable = newcomers_commands(Path(folder), args.interrupt_after)
     rows = [(f"pretrain: {name}", times) for name, times in pretrain["marks"].items()]
     rows.append(("pretrain: from Ctrl-C to the exit", pretrain["after_interrupt"]))
     if evaluate is not None:
@@ -193,7 +200,7 @@ def main() -> None:
     )
     for result in (pretrain, evaluate):
         if result is not None:
-            del result["output"]  # the bars' redraws: long, and in the run folder's logs
+            del result["output"]  # the bars' redraws: long
     write_results(
         out,
         {
