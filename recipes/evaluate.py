@@ -8,7 +8,8 @@ Writes ``evaluation.json`` (success rate, goals and out-of-bounds per episode, m
 decision; for the policy's mean action, for its samples, and for each baseline) and a video of
 one environment into Hydra's run directory, with a progress bar per policy scored and for the
 video. Without a CUDA device, device=auto scores 16 episodes and records a shorter video on one
-thread (cpu_defaults: about a minute on two cores) unless the command line sets them.
+thread (cpu_defaults: half a minute on two cores, docs/training.md) unless the command line
+sets them.
 """
 
 from __future__ import annotations

@@ -291,12 +291,14 @@ def train(
                     )
                     log_scalars(logger, final, trainer.env_steps)
         except KeyboardInterrupt:
-            if main:
+            if main and last.exists():
                 log.info(
                     f"interrupted during {stop.activity}; {shown(last)} is the last checkpoint"
                 )
-                if resume_hint is not None and last.exists():
+                if resume_hint is not None:
                     log.info(f"resume with: {resume_hint(last)}")
+            elif main:
+                log.info(f"interrupted during {stop.activity}, before a checkpoint was written")
             raise SystemExit(130) from None
         except FloatingPointError as error:
             if not main:  # every rank stops at the same iteration; rank 0 says why

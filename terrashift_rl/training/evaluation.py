@@ -153,7 +153,7 @@ def evaluate(
         unit="decision",
         disable=not progress,
     )
-    with torch.no_grad():
+    with torch.no_grad(), bar:  # closed also when Ctrl-C ends the evaluation
         td = env.reset()
         # every environment ends within max_episode_steps decisions (truncation)
         for _ in range(config.max_episode_steps):
@@ -176,7 +176,6 @@ def evaluate(
             bar.update()
             if left == 0:
                 break
-    bar.close()
     getattr(env, "base_env", env).check_actions()
     if running.any():  # cannot happen: truncation ends every episode at the step limit
         raise RuntimeError(

@@ -75,19 +75,27 @@ def resolve_device(name: Any, key: str) -> torch.device:
 def start_warp(device: torch.device) -> None:
     """Initialises Warp for the run's ``device``. On the CPU its native library's start is kept
     off the terminal: it would print that it found no CUDA driver, which the run has said
-    already (a Python error of Warp's start still raises)."""
+    already (a Python error of Warp's start still raises). Says so when Warp's kernel cache
+    holds none of the simulator's kernels yet (a first run on the machine, or with this Warp
+    version): the first environment then waits while Warp compiles them, silently."""
     if device.type != "cpu":
         wp.init()
-        return
-    sys.stderr.flush()
-    terminal, nothing = os.dup(2), os.open(os.devnull, os.O_WRONLY)
-    os.dup2(nothing, 2)
-    try:
-        wp.init()
-    finally:
-        os.dup2(terminal, 2)
-        os.close(terminal)
-        os.close(nothing)
+    else:
+        sys.stderr.flush()
+        terminal, nothing = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+        os.dup2(nothing, 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(terminal, 2)
+            os.close(terminal)
+            os.close(nothing)
+    cache = Path(wp.config.kernel_cache_dir)
+    if distributed.is_main_process() and not any(cache.glob("*terrashift_rl*")):
+        log.info(
+            f"Warp compiles the simulator's kernels into {cache} before the first step, once "
+            "(on two CPU cores about 10 s; later runs load them)"
+        )
 
 
 def run_folder(resume: str | None, fresh: str) -> str:
@@ -316,11 +324,16 @@ def check_warp_cache() -> None:
 def refusals_end_the_run() -> Iterator[None]:
     """Ends the process with exit status 1 and the message alone, without a traceback, when the
     block refuses what it was given (a ``ValueError``: a setting, a checkpoint, a run folder)
-    or cannot write or read a file (an ``OSError``, which names it). ``HYDRA_FULL_ERROR=1``
-    keeps the traceback, as Hydra's own errors do."""
+    or cannot write or read a file (an ``OSError``, which names it); with exit status 130 and
+    the line ``interrupted`` when Ctrl-C reaches it (one during a run's set-up, before the
+    run's own handler takes over, or during an evaluation). ``HYDRA_FULL_ERROR=1`` keeps the
+    traceback, as Hydra's own errors do."""
     try:
         yield
-    except (ValueError, OSError) as error:
+    except (ValueError, OSError, KeyboardInterrupt) as error:
         if os.environ.get("HYDRA_FULL_ERROR") == "1":
             raise
+        if isinstance(error, KeyboardInterrupt):
+            log.info("interrupted")
+            raise SystemExit(130) from None
         raise SystemExit(f"error: {error}") from None

@@ -482,18 +482,33 @@ def test_without_cuda_evaluate_scores_fewer_episodes_unless_told(
     assert {scores["episodes"] for scores in report["baselines"].values()} == {episodes}
 
 
-@pytest.mark.slow
-def test_a_terminated_run_checkpoints_a_whole_iteration(tmp_path):
-    # SIGTERM lands mid-iteration more often than not; the run finishes that iteration first,
-    # so its checkpoint equals that of a run told to stop there
+def start_pretraining(tmp_path: Path, overrides: list[str]) -> subprocess.Popen:
+    """The smoke pretraining with ``overrides``, run folder ``k``, its output piped, in a process
+    group of its own (which a terminal's Ctrl-C signals as a whole)."""
     command = [sys.executable, str(RECIPES / "mapoca_pretrain.py"), "--config-name", "smoke"]
-    killed = subprocess.Popen(
-        [*command, "run.total_env_steps=1000000", "run.checkpoint_every=1", "hydra.run.dir=k"],
+    return subprocess.Popen(
+        [*command, *overrides, "hydra.run.dir=k"],
         cwd=tmp_path,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        start_new_session=True,
     )
+
+
+def ctrl_c(process: subprocess.Popen) -> tuple[str, str, float]:
+    """Ctrl-C to ``process``'s group; its output and the seconds from the signal to its exit."""
+    os.killpg(process.pid, signal.SIGINT)
+    signalled = time.monotonic()
+    stdout, stderr = process.communicate(timeout=600)
+    return stdout, stderr, time.monotonic() - signalled
+
+
+@pytest.mark.slow
+def test_a_terminated_run_checkpoints_a_whole_iteration(tmp_path):
+    # SIGTERM lands mid-iteration more often than not; the run finishes that iteration first,
+    # so its checkpoint equals that of a run told to stop there
+    killed = start_pretraining(tmp_path, ["run.total_env_steps=1000000", "run.checkpoint_every=1"])
     deadline = time.monotonic() + 300
     while not (tmp_path / "k/checkpoints/last.pt").exists() and time.monotonic() < deadline:
         time.sleep(0.1)
@@ -533,24 +548,14 @@ def test_ctrl_c_checkpoints_exits_in_seconds_and_prints_the_command_that_resumes
         "run.eval_every=1000",
         "env.max_episode_steps=4096",
     ]
-    command = [sys.executable, str(RECIPES / "mapoca_pretrain.py"), "--config-name", "smoke"]
-    interrupted = subprocess.Popen(
-        [*command, *overrides, "hydra.run.dir=k"],
-        cwd=tmp_path,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    interrupted = start_pretraining(tmp_path, overrides)
     last = tmp_path / "k/checkpoints/last.pt"
     try:
         wait_for(last.exists, "first checkpoint")
         first = last.stat().st_mtime
         wait_for(lambda: last.stat().st_mtime != first, "second checkpoint")
         iteration_s = last.stat().st_mtime - first  # on a loaded machine, iterations slow down
-        interrupted.send_signal(signal.SIGINT)
-        signalled = time.monotonic()
-        stdout, stderr = interrupted.communicate(timeout=600)
-        exit_s = time.monotonic() - signalled
+        stdout, stderr, exit_s = ctrl_c(interrupted)
     finally:
         interrupted.kill()
     assert interrupted.returncode == 0, stderr
@@ -581,6 +586,48 @@ def test_ctrl_c_checkpoints_exits_in_seconds_and_prints_the_command_that_resumes
     assert not (tmp_path / "outputs").exists()
     log = (tmp_path / "k/mapoca_pretrain.log").read_text()
     assert "SIGINT: stopping after this iteration" in log and line in log  # the first run's too
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("checkpointed", [True, False])
+def test_a_second_ctrl_c_quits_at_once_saying_what_it_keeps(tmp_path, checkpointed):
+    # iterations of 1,024 decisions (8,192 for the first, never checkpointed): the second signal
+    # lands in the iteration that the first one lets finish
+    overrides = ["run.total_env_steps=1000000", "train.num_envs=128"]
+    if checkpointed:
+        overrides.append("run.checkpoint_every=1")
+    else:
+        overrides += ["run.checkpoint_every=1000", "train.steps_per_iteration=64"]
+    interrupted = start_pretraining(tmp_path, overrides)
+    last, log = tmp_path / "k/checkpoints/last.pt", tmp_path / "k/mapoca_pretrain.log"
+    try:
+        if checkpointed:
+            wait_for(last.exists, "first checkpoint")
+        else:
+            wait_for(lambda: log.exists() and "env-steps" in log.read_text(), "run line")
+            time.sleep(0.5)  # past the start of the run's handler, inside the first iteration
+        os.killpg(interrupted.pid, signal.SIGINT)
+        wait_for(lambda: "SIGINT: stopping" in log.read_text(), "answer to the first Ctrl-C")
+        stdout, stderr, exit_s = ctrl_c(interrupted)
+    finally:
+        interrupted.kill()
+    assert interrupted.returncode == 130, stderr
+    assert exit_s < 30, f"exited {exit_s:.0f} s after the second Ctrl-C"  # a hang guard
+    (said,) = [line for line in stdout.splitlines() if line.startswith("interrupted during ")]
+    resumes = [line for line in stdout.splitlines() if line.startswith("resume with: ")]
+    if not checkpointed:
+        assert said == "interrupted during the iteration, before a checkpoint was written"
+        assert not last.exists() and resumes == []
+        return
+    assert said.endswith(f"; {last.relative_to(tmp_path)} is the last checkpoint")
+    assert load_checkpoint(last)["iteration"] >= 1  # a whole one: written before, never half
+    (line,) = resumes
+    assert shlex.split(line.removeprefix("resume with: "))[2:] == [
+        "--config-name",
+        "smoke",
+        *overrides,
+        f"run.resume={last.relative_to(tmp_path)}",
+    ]
 
 
 @pytest.mark.slow

@@ -1,16 +1,23 @@
 """What the recipes share around the loop: which CPU-sized defaults apply, the device setting,
-a checkpoint's actions, the stop request, the best window."""
+Warp's start, a checkpoint's actions, the stop request, the best window."""
 
 import signal
 
 import pytest
 import torch
+import warp as wp
 from omegaconf import OmegaConf
 
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training import load_checkpoint
 from terrashift_rl.training.checkpoint import check_action_mode, update_best
-from terrashift_rl.training.launch import cpu_overrides, resolve_device, size_for_the_machine
+from terrashift_rl.training.launch import (
+    cpu_overrides,
+    refusals_end_the_run,
+    resolve_device,
+    size_for_the_machine,
+    start_warp,
+)
 from terrashift_rl.training.signals import StopRequest
 
 DEFAULTS = ["model=small", "train.num_envs=32", "run.eval_episodes=16"]
@@ -60,6 +67,30 @@ def test_auto_resolves_to_the_cpu_without_cuda(monkeypatch):
     assert resolve_device("auto", "run.device") == torch.device("cpu")
     with pytest.raises(ValueError, match="^device must be auto, cpu, cuda or cuda:<index>, got 7"):
         resolve_device(7, "device")
+
+
+def test_a_kernel_cache_without_the_simulators_kernels_is_announced(monkeypatch, tmp_path, caplog):
+    wp.init()  # with the real cache, which the test then hides
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    with caplog.at_level("INFO"):
+        start_warp(torch.device("cpu"))  # a first run: the compile's wait is explained
+        (tmp_path / "wp_terrashift_rl.sim.simulator_609b2de").mkdir()
+        start_warp(torch.device("cpu"))  # later runs load the kernels: nothing to say
+    assert caplog.messages == [
+        f"Warp compiles the simulator's kernels into {tmp_path} before the first step, once (on "
+        "two CPU cores about 10 s; later runs load them)"
+    ]
+
+
+def test_a_ctrl_c_outside_the_runs_own_handler_ends_it_in_one_line(monkeypatch, caplog):
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    with caplog.at_level("INFO"), pytest.raises(SystemExit) as ended, refusals_end_the_run():
+        raise KeyboardInterrupt  # during set-up or an evaluation: no traceback
+    assert ended.value.code == 130
+    assert caplog.messages == ["interrupted"]
+    monkeypatch.setenv("HYDRA_FULL_ERROR", "1")
+    with pytest.raises(KeyboardInterrupt), refusals_end_the_run():
+        raise KeyboardInterrupt  # kept, with its traceback, where Hydra keeps its errors'
 
 
 def test_a_checkpoint_is_refused_on_a_scene_with_other_actions():
