@@ -429,7 +429,7 @@ class EvaluateConfig:
         ["episodes=16", "video.steps=128", "video.every=4", "threads=1"], OVERRIDES
     )
     """With ``device=auto`` and no CUDA device, these overrides apply unless the command line
-    sets their keys: about a minute on two CPU cores."""
+    sets their keys: under a minute on two CPU cores (25–38 s, `benchmarks/first_hour.py`)."""
     threads: int | None = setting(None, at_least(1), null="torch's default")
     """Threads of torch's operators on the CPU, as the training run's ``run.threads``."""
     seed: int = setting(1, SEED)
