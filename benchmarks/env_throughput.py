@@ -60,6 +60,17 @@ def _rate(step, num_envs: int, device: torch.device, seconds: float, warmup: int
             return calls * num_envs / elapsed
 
 
+def cold_start(config: TerraShiftConfig, num_envs: int, device: torch.device) -> float:
+    """Seconds from building the process's first simulator to the end of its first step."""
+    _sync(device)
+    start = time.perf_counter()
+    sim = Simulator(config, num_envs=num_envs, device=device, seed=0)
+    sim.reset()
+    sim.step(torch.zeros(sim.action_shape, device=device))
+    _sync(device)
+    return time.perf_counter() - start
+
+
 def measure(config: TerraShiftConfig, num_envs: int, device: torch.device, seconds: float) -> dict:
     k = config.num_agents
     generator = torch.Generator(device=device).manual_seed(0)
@@ -178,10 +189,20 @@ def main() -> None:
         "rows": [],
         "profiles": [],
     }
+    wp.init()
+    cache = Path(wp.config.kernel_cache_dir)
+    payload["kernel_cache_entries_before"] = len(list(cache.iterdir())) if cache.is_dir() else 0
+    torch.zeros(1, device=device)  # the device's context exists before the clock starts
+    payload["cold_start_s"] = cold_start(config, args.num_envs[0], device)
     camera = f", {config.camera_resolution}^2 camera" if config.camera_resolution else ""
     print(
         f"TerraShift env throughput (env-steps/s), pretrain scene ({config.actuator}, "
         f"{config.column_shape}{camera}), {payload['device']}"
+    )
+    print(
+        f"cold start: {payload['cold_start_s']:.1f} s (first simulator, {args.num_envs[0]:,} "
+        f"environments, built to its first step; {payload['kernel_cache_entries_before']} "
+        "kernel cache entries before)"
     )
     print(
         table_header(["num_envs", "simulator", "substeps", "fused", "per substep", "TorchRL env"])

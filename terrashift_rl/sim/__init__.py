@@ -6,18 +6,12 @@ import warp as wp
 wp.config.log_level = wp.LOG_WARNING
 
 from terrashift_rl.sim.actuators import ACTUATORS, Actuator  # noqa: E402
-from terrashift_rl.sim.config import (  # noqa: E402
-    ACTUATOR_FAMILIES,
-    COLUMN_SHAPES,
-    REWARD_TERMS,
-    TerraShiftConfig,
-)
+from terrashift_rl.sim.config import COLUMN_SHAPES, REWARD_TERMS, TerraShiftConfig  # noqa: E402
 from terrashift_rl.sim.scene import ScriptedScene  # noqa: E402
 from terrashift_rl.sim.simulator import Simulator  # noqa: E402
 
 __all__ = [
     "ACTUATORS",
-    "ACTUATOR_FAMILIES",
     "COLUMN_SHAPES",
     "REWARD_TERMS",
     "Actuator",

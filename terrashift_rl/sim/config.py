@@ -25,9 +25,6 @@ ACTION_MODES = ("delta", "target", "position", "shape")
 the wavelet's target position (and the change of the rest), or the change of the rates and the
 target of the shape."""
 
-ACTUATOR_FAMILIES = ("wavelets", "surface_flow", "rotors")
-"""The actuator families' names; ``terrashift_rl.sim.ACTUATORS`` holds one family for each."""
-
 REWARD_TERMS = {
     "goal_reward": "task",
     "out_of_bounds_penalty": "task",
@@ -420,8 +417,13 @@ class TerraShiftConfig:
             value = getattr(self, name)
             if not isinstance(value, bool):
                 raise ValueError(f"{name} must be true or false, got {value!r}")
-        if self.actuator not in ACTUATOR_FAMILIES:
-            raise ValueError(f"actuator must be one of {ACTUATOR_FAMILIES}, got {self.actuator!r}")
+        # imported here: the families' modules import this one
+        from terrashift_rl.sim.actuators import ACTUATORS
+
+        if self.actuator not in ACTUATORS:
+            raise ValueError(
+                f"actuator must be one of {tuple(sorted(ACTUATORS))}, got {self.actuator!r}"
+            )
         if self.action_mode not in ACTION_MODES:
             raise ValueError(f"action_mode must be one of {ACTION_MODES}, got {self.action_mode!r}")
         if self.column_shape not in COLUMN_SHAPES:

@@ -8,13 +8,13 @@ import pytest
 import torch
 
 from terrashift_rl.sim import (
-    ACTUATOR_FAMILIES,
     ACTUATORS,
     COLUMN_SHAPES,
     ScriptedScene,
     Simulator,
     TerraShiftConfig,
 )
+from terrashift_rl.sim.actuators import register
 
 SEED = 0
 FLOW_TOL = 1e-5
@@ -24,12 +24,18 @@ Gaussians times speeds of order 1 m/s."""
 
 def test_the_default_family_is_the_wavelets_and_unknown_names_are_refused():
     assert TerraShiftConfig().actuator == "wavelets"
-    with pytest.raises(ValueError, match=r"actuator must be one of \('wavelets', 'surface_flow'"):
+    with pytest.raises(
+        ValueError, match=r"actuator must be one of \('rotors', 'surface_flow', 'wavelets'\)"
+    ):
         TerraShiftConfig(actuator="cilia")
 
 
-def test_the_registry_holds_one_family_for_each_name_the_config_allows():
-    assert tuple(ACTUATORS) == ACTUATOR_FAMILIES
+def test_every_family_of_the_package_registers_itself_once():
+    assert sorted(ACTUATORS) == ["rotors", "surface_flow", "wavelets"]
+    rotors = ACTUATORS["rotors"]
+    with pytest.raises(ValueError, match="'rotors' is registered already"):
+        register(type(rotors))
+    assert ACTUATORS["rotors"] is rotors
 
 
 def test_every_family_keeps_the_agent_layout():

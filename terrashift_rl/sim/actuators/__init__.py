@@ -1,7 +1,8 @@
 """Actuator families: what the agents control and what it does to the surface.
 
 ``ACTUATORS`` maps each family's name (``TerraShiftConfig.actuator``) to it; the seam a family
-implements is :class:`Actuator` (docs/actuators.md says how to add one).
+implements is :class:`Actuator`, and its module registers it (:func:`register`).
+docs/actuators.md says how to add one.
 
 Example:
     >>> sorted(ACTUATORS)
@@ -12,20 +13,18 @@ Example:
 
 from __future__ import annotations
 
+import importlib
+import pkgutil
 from typing import TYPE_CHECKING
 
-from terrashift_rl.sim.actuators.base import Actuator
-from terrashift_rl.sim.actuators.rotors import Rotors
-from terrashift_rl.sim.actuators.surface_flow import SurfaceFlow
-from terrashift_rl.sim.actuators.wavelets import Wavelets
+from terrashift_rl.sim.actuators.base import ACTUATORS, Actuator, register
 
 if TYPE_CHECKING:
     from terrashift_rl.sim.config import TerraShiftConfig
 
-ACTUATORS: dict[str, Actuator] = {
-    family.name: family for family in (Wavelets(), SurfaceFlow(), Rotors())
-}
-"""Every actuator family, by name (the names are the config's ``ACTUATOR_FAMILIES``)."""
+# every module of this package, so that each family in it registers itself
+for _module in pkgutil.iter_modules(__path__):
+    importlib.import_module(f"{__name__}.{_module.name}")
 
 
 def actuator_for(config: TerraShiftConfig) -> Actuator:
@@ -33,4 +32,4 @@ def actuator_for(config: TerraShiftConfig) -> Actuator:
     return ACTUATORS[config.actuator]
 
 
-__all__ = ["ACTUATORS", "Actuator", "actuator_for"]
+__all__ = ["ACTUATORS", "Actuator", "actuator_for", "register"]

@@ -27,7 +27,7 @@ networks and recipes take any family unchanged.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING, ClassVar, TypeVar
 
 if TYPE_CHECKING:
     import warp as wp
@@ -42,7 +42,8 @@ class Actuator:
 
     Subclasses set the class attributes and implement every method; each ``launch_*`` method
     only launches Warp kernels (it may be captured in a CUDA graph), reading ``sim.model``,
-    ``sim.data`` and ``sim.config``.
+    ``sim.data`` and ``sim.config``. A family is used once :func:`register` has put it in
+    :data:`ACTUATORS`.
     """
 
     name: ClassVar[str]
@@ -89,3 +90,22 @@ class Actuator:
     def launch_observe(self, sim: Simulator) -> None:
         """Writes ``agent_features`` [num_envs, K, AGENT_FEATURES] in [-1, 1]."""
         raise NotImplementedError
+
+
+ACTUATORS: dict[str, Actuator] = {}
+"""Every registered actuator family, by name (:func:`register`)."""
+
+Family = TypeVar("Family", bound=type[Actuator])
+
+
+def register(family: Family) -> Family:
+    """Class decorator that registers an instance of ``family`` in :data:`ACTUATORS` under its
+    ``name``, which ``TerraShiftConfig.actuator`` then accepts: a family's module registers it,
+    wherever that module lives, once imported."""
+    if family.name in ACTUATORS:
+        raise ValueError(
+            f"an actuator family named {family.name!r} is registered already "
+            f"({type(ACTUATORS[family.name]).__qualname__})"
+        )
+    ACTUATORS[family.name] = family()
+    return family

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 
 import warp as wp
 
+from terrashift_rl.sim.actuators.base import register
 from terrashift_rl.sim.actuators.patches import SlidingPatchActuator
 from terrashift_rl.sim.types import Model
 
@@ -31,6 +32,7 @@ def spin_velocity(model: Model, amplitude: float, frame: wp.vec4, envelope: wp.v
     return (amplitude * envelope[0] * model.cell_size) * wp.vec2(-envelope[2], envelope[1])
 
 
+@register
 class Rotors(SlidingPatchActuator):
     """Spinning Gaussian patches of surface (rotor tiles)."""
 

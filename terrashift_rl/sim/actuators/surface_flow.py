@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 import warp as wp
 
+from terrashift_rl.sim.actuators.base import register
 from terrashift_rl.sim.actuators.patches import SlidingPatchActuator
 from terrashift_rl.sim.types import Model
 
@@ -30,6 +31,7 @@ def flow_velocity(model: Model, amplitude: float, frame: wp.vec4, envelope: wp.v
     return (amplitude * envelope[0]) * wp.vec2(frame[0], frame[1])
 
 
+@register
 class SurfaceFlow(SlidingPatchActuator):
     """Gaussian patches of in-plane surface velocity along each patch's orientation."""
 

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 
 import warp as wp
 
+from terrashift_rl.sim.actuators.base import register
 from terrashift_rl.sim.actuators.patches import PatchActuator, envelope
 from terrashift_rl.sim.types import Model
 
@@ -54,6 +55,7 @@ def compute_heights(
     height[e, iy, ix] = h
 
 
+@register
 class Wavelets(PatchActuator):
     """Gaussian wavelets of the column heights (the paper's actuator)."""
 
