@@ -19,7 +19,7 @@ at its highest, linearly in height; goals and spheres take the 2G levels spaced 
 and so on. Sphere j belongs to goal ``j mod num_goals``, so a sphere is one level step
 brighter than its own goal, and every level tells apart what it shows.
 
-Three launches draw it: the terrain under every pixel, a column of pixels per thread; then
+Three launches draw it: the terrain under every pixel, two columns of pixels per thread; then
 each goal's region and then each sphere over it, a thread per pixel column of the object's
 box, so that only the pixels about an object test it.
 """
@@ -176,6 +176,37 @@ def pixels_within(model: Model, camera_model: CameraModel, centre: float, reach:
     return wp.vec2i(wp.max(lo, 0), wp.min(hi, model.camera_resolution - 1))
 
 
+@wp.func
+def terrain_level(
+    model: Model,
+    camera_model: CameraModel,
+    height: wp.array3d(dtype=float),
+    e: int,
+    top: float,
+    dx: float,
+    dy: float,
+    x: float,
+    y: float,
+) -> float:
+    """Grey level of the columns' surface at (x, y) [m] (``surface_height``'s surface), or of
+    the platform: ``top`` [m] is the top of the column under it and (dx, dy) [m] the offset
+    from that column's centre."""
+    z = float(MISS)
+    if model.column_shape == SHAPE_BOX:
+        z = top
+    elif model.column_shape == SHAPE_ELLIPSOID:
+        rho2 = (dx * dx + dy * dy) * camera_model.to_dome
+        if rho2 <= 1.0 + 1.0e-5:  # as surface_height: the platform edge grazes the domes
+            z = top - model.column_half_height * (1.0 - wp.sqrt(wp.max(1.0 - rho2, 0.0)))
+    else:
+        z = smooth_surface(model, height, height, e, x, y, 1.0)[0]
+    level = float(0.0)
+    if z != MISS:
+        level = camera_model.shade_gain * z + camera_model.shade_offset
+        level = wp.clamp(level, TERRAIN_LOW, TERRAIN_HIGH)
+    return level
+
+
 @wp.kernel
 def draw_terrain(
     model: Model,
@@ -183,42 +214,40 @@ def draw_terrain(
     height: wp.array3d(dtype=float),
     camera: wp.array4d(dtype=float),
 ):
-    """Shades every pixel by the columns' surface under it (``surface_height``'s surface) or
-    the platform, a lattice column of pixels per thread: what depends on x alone is computed
-    once per thread and a column's top read once for all its pixels.
+    """Shades every pixel by the columns' surface under it or the platform, two lattice
+    columns of pixels per thread, one in the left half and one in the right: what depends on
+    y alone is computed once for both, what depends on x once per thread, and a column's top
+    is read once for all its pixels.
 
-    Launch dim: [num_envs, C] as (env, column = x).
+    Launch dim: [num_envs, ceil(C / 2)] as (env, column = x in the left half).
     """
     e, cx = wp.tid()
     c = model.camera_resolution
+    cx_right = cx + (c + 1) / 2
     last = model.grid_size - 1
     x = pixel_coordinate(model, camera_model, cx)
+    x_right = pixel_coordinate(model, camera_model, cx_right)
     ix = wp.min(int(float(cx) * camera_model.step_in_cells), last)
+    ix_right = wp.min(int(float(cx_right) * camera_model.step_in_cells), last)
     dx = x - column_center(model, ix)
+    dx_right = x_right - column_center(model, ix_right)
     iy_read = int(-1)
     top = float(0.0)
+    top_right = float(0.0)
     yc = float(0.0)
     for cy in range(c):
         y = pixel_coordinate(model, camera_model, cy)
         iy = wp.min(int(float(cy) * camera_model.step_in_cells), last)
-        if iy != iy_read:  # the column under this pixel and its centre's y
+        if iy != iy_read:  # the columns under these pixels and their centres' y
             iy_read = iy
             top = column_top(model, height, height, e, iy, ix, 1.0)
+            top_right = column_top(model, height, height, e, iy, ix_right, 1.0)
             yc = column_center(model, iy)
-        z = float(MISS)
-        if model.column_shape == SHAPE_BOX:
-            z = top
-        elif model.column_shape == SHAPE_ELLIPSOID:
-            rho2 = (dx * dx + (y - yc) * (y - yc)) * camera_model.to_dome
-            if rho2 <= 1.0 + 1.0e-5:  # as surface_height: the platform edge grazes the domes
-                z = top - model.column_half_height * (1.0 - wp.sqrt(wp.max(1.0 - rho2, 0.0)))
-        else:
-            z = smooth_surface(model, height, height, e, x, y, 1.0)[0]
-        level = float(0.0)
-        if z != MISS:
-            level = camera_model.shade_gain * z + camera_model.shade_offset
-            level = wp.clamp(level, TERRAIN_LOW, TERRAIN_HIGH)
-        camera[e, 0, cy, cx] = level
+        camera[e, 0, cy, cx] = terrain_level(model, camera_model, height, e, top, dx, y - yc, x, y)
+        if cx_right < c:
+            camera[e, 0, cy, cx_right] = terrain_level(
+                model, camera_model, height, e, top_right, dx_right, y - yc, x_right, y
+            )
 
 
 @wp.kernel
@@ -322,7 +351,7 @@ def render(model: Model, data: Data, config: TerraShiftConfig, num_envs: int) ->
     camera_model = build_camera_model(model)
     wp.launch(
         draw_terrain,
-        dim=(num_envs, config.camera_resolution),
+        dim=(num_envs, (config.camera_resolution + 1) // 2),
         inputs=[model, camera_model, data.column_height, data.camera],
     )
     wp.launch(
