@@ -1,5 +1,6 @@
-"""The pixels recipe: trains from the camera without the object sequence; a scene that lacks
-what the networks read, or a teacher without the objects, is refused at start-up."""
+"""The pixels recipe: trains from the camera without the object sequence, in one scene or
+through a curriculum; a scene that lacks what the networks read, or a teacher without the
+objects, is refused at start-up."""
 
 import importlib.util
 import subprocess
@@ -47,6 +48,38 @@ def test_the_pixels_recipe_trains_from_the_camera_alone(tmp_path):
     assert checkpoint["model_config"]["camera_channels"] == 1
     assert checkpoint["model_config"]["object_tokens"] is False
     assert not any("object_encoder" in name for name in checkpoint["networks"])
+
+
+@pytest.mark.slow
+def test_the_pixels_recipe_trains_through_a_curriculum(tmp_path):
+    result = subprocess.run(
+        [
+            sys.executable,
+            str(RECIPES / "mapoca_pretrain.py"),
+            "--config-name",
+            "mapoca_pixels",
+            *TINY,
+            "env.camera_resolution=16",
+            "curriculum=auto",
+            "curriculum.start_grid_size=6",
+            "curriculum.start_num_agents=2",
+            "curriculum.start_num_objects=1",
+            "curriculum.stages=2",
+            "curriculum.threshold=0",  # advance at the first evaluation
+            "curriculum.eval_every=1",
+            "run.total_env_steps=64",
+            "hydra.run.dir=a",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "stage 2/2: 8x8 columns, 4 agents, 2 spheres from 32 env-steps" in result.stdout
+    checkpoint = load_checkpoint(tmp_path / "a/checkpoints/last.pt")
+    assert checkpoint["curriculum"]["stage"] == 1
+    assert checkpoint["env_config"]["camera_resolution"] == 16
 
 
 @pytest.mark.parametrize(
