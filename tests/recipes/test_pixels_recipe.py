@@ -21,8 +21,9 @@ TINY = ["env=smoke", "model=small", "train=smoke", "logger=none", "run.device=cp
 """The pixels recipe at the smoke config's sizes."""
 
 
-@pytest.mark.slow
-def test_the_pixels_recipe_trains_from_the_camera_alone(tmp_path):
+def train_pixels(tmp_path: Path, *overrides: str) -> tuple[str, dict]:
+    """Runs the pixels recipe at the smoke sizes with a 16 x 16 camera for 64 env-steps; its
+    output and its last checkpoint."""
     result = subprocess.run(
         [
             sys.executable,
@@ -32,8 +33,7 @@ def test_the_pixels_recipe_trains_from_the_camera_alone(tmp_path):
             *TINY,
             "env.camera_resolution=16",
             "run.total_env_steps=64",
-            "run.eval_every=1",
-            "run.eval_episodes=2",
+            *overrides,
             "hydra.run.dir=a",
         ],
         cwd=tmp_path,
@@ -42,7 +42,12 @@ def test_the_pixels_recipe_trains_from_the_camera_alone(tmp_path):
         timeout=600,
     )
     assert result.returncode == 0, result.stderr
-    checkpoint = load_checkpoint(tmp_path / "a/checkpoints/last.pt")
+    return result.stdout, load_checkpoint(tmp_path / "a/checkpoints/last.pt")
+
+
+@pytest.mark.slow
+def test_the_pixels_recipe_trains_from_the_camera_alone(tmp_path):
+    _, checkpoint = train_pixels(tmp_path, "run.eval_every=1", "run.eval_episodes=2")
     assert checkpoint["env_config"]["camera_resolution"] == 16
     assert checkpoint["env_config"]["observe_objects"] is False
     assert checkpoint["model_config"]["camera_channels"] == 1
@@ -52,32 +57,17 @@ def test_the_pixels_recipe_trains_from_the_camera_alone(tmp_path):
 
 @pytest.mark.slow
 def test_the_pixels_recipe_trains_through_a_curriculum(tmp_path):
-    result = subprocess.run(
-        [
-            sys.executable,
-            str(RECIPES / "mapoca_pretrain.py"),
-            "--config-name",
-            "mapoca_pixels",
-            *TINY,
-            "env.camera_resolution=16",
-            "curriculum=auto",
-            "curriculum.start_grid_size=6",
-            "curriculum.start_num_agents=2",
-            "curriculum.start_num_objects=1",
-            "curriculum.stages=2",
-            "curriculum.threshold=0",  # advance at the first evaluation
-            "curriculum.eval_every=1",
-            "run.total_env_steps=64",
-            "hydra.run.dir=a",
-        ],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=600,
+    output, checkpoint = train_pixels(
+        tmp_path,
+        "curriculum=auto",
+        "curriculum.start_grid_size=6",
+        "curriculum.start_num_agents=2",
+        "curriculum.start_num_objects=1",
+        "curriculum.stages=2",
+        "curriculum.threshold=0",  # advance at the first evaluation
+        "curriculum.eval_every=1",
     )
-    assert result.returncode == 0, result.stderr
-    assert "stage 2/2: 8x8 columns, 4 agents, 2 spheres from 32 env-steps" in result.stdout
-    checkpoint = load_checkpoint(tmp_path / "a/checkpoints/last.pt")
+    assert "stage 2/2: 8x8 columns, 4 agents, 2 spheres from 32 env-steps" in output
     assert checkpoint["curriculum"]["stage"] == 1
     assert checkpoint["env_config"]["camera_resolution"] == 16
 
