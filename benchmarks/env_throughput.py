@@ -13,8 +13,8 @@ plumbing and resets). Prints a table and writes JSON (after every size).
         --profile
 
 ``--camera-resolution R`` renders the overhead camera (R x R) at every step and writes its
-own JSON (``..._camera64.json``); its profile's ``render_camera`` line is the camera's share of
-a step.
+own JSON (``..._camera64.json``); its profile adds the camera's kernels up
+(``camera_ms_per_step``): the camera's share of a step.
 
 ``--profile N ...`` then adds, at each size N (each measured size if none is given), the GPU
 time and launch count of every kernel over eager (non-graph) steps, both ways of launching the
@@ -32,9 +32,10 @@ import warp as wp
 from common import benchmark_parser, run_header, table_header, table_row, write_results
 
 from terrashift_rl.envs import GROUP, TerraShiftEnv
-from terrashift_rl.sim import ACTUATORS, Simulator, TerraShiftConfig
+from terrashift_rl.sim import ACTUATORS, Simulator, TerraShiftConfig, camera
 
 DEFAULT_SIZES = [1, 4, 16, 64, 256, 1024, 4096, 16384, 65536]
+CAMERA_KERNELS = {kernel.key for kernel in camera.KERNELS}
 LAUNCHES = {True: "fused", False: "per_substep"}
 """JSON names of the two ways of launching the substeps, by ``fuse_substeps``."""
 
@@ -226,16 +227,21 @@ def main() -> None:
     for n in profile_sizes:
         for fused in (True, False):
             kernels = profile(config, n, device, fused)
-            payload["profiles"].append(
-                {"num_envs": n, "fuse_substeps": fused, "kernel_ms_per_step": kernels}
-            )
-            write_results(out, payload)
+            record = {"num_envs": n, "fuse_substeps": fused, "kernel_ms_per_step": kernels}
             total = sum(entry["ms"] for entry in kernels.values())
+            camera_ms = sum(kernels[name]["ms"] for name in CAMERA_KERNELS & kernels.keys())
+            if config.camera_resolution:
+                record["camera_ms_per_step"] = camera_ms
+            payload["profiles"].append(record)
+            write_results(out, payload)
             print(f"\nkernels per step at {n} environments, substeps {LAUNCHES[fused]}:")
             print(table_header(["kernel", "ms / step", "share", "launches"]))
             for kernel, entry in kernels.items():
                 share = f"{100 * entry['ms'] / total:.1f}%"
                 print(table_row([kernel, f"{entry['ms']:.3f}", share, entry["launches"]]))
+            if config.camera_resolution:
+                share = f"{100 * camera_ms / total:.1f}%"
+                print(table_row(["camera (draw_*)", f"{camera_ms:.3f}", share, ""]))
             print(table_row(["total", f"{total:.3f}", "", ""]))
     print(f"wrote {out}")
 

@@ -32,9 +32,15 @@ class MixedSceneEnv(EnvBase):
     The specs are fixed at construction, so :meth:`set_scenes` can swap the scenes for others
     (a curriculum's next stage) under the same policy, transforms and captured graphs.
 
+    Every scene keeps the first's observations: its heightmap resolution, its camera
+    (``camera_resolution``, the same R x R frame whatever the grid) and whether it observes
+    the objects. The camera draws the colour pairs at grey levels spread over the scene's
+    own number of goals (:func:`~terrashift_rl.sim.camera.camera_levels`), so scenes with
+    different numbers of goals draw a pair at different levels.
+
     Args:
         scenes: the scenes, each a :class:`~terrashift_rl.sim.TerraShiftConfig`, all with the
-            first's heightmap resolution.
+            first's heightmap resolution, camera resolution and ``observe_objects``.
         num_envs: environments of each scene, each >= 1.
 
     Keyword Args:
@@ -70,6 +76,8 @@ class MixedSceneEnv(EnvBase):
             max(s.num_objects for s in scenes) if num_objects is None else num_objects
         )
         self.heightmap_resolution = scenes[0].heightmap_resolution
+        self.camera_resolution = scenes[0].camera_resolution
+        self.observe_objects = scenes[0].observe_objects
         super().__init__(device=device, batch_size=torch.Size([sum(num_envs)]))
         self.set_scenes(scenes, num_envs, seed=seed)
         set_specs(
@@ -77,13 +85,15 @@ class MixedSceneEnv(EnvBase):
             num_agents=self.num_agents,
             num_objects=self.num_objects,
             heightmap_resolution=self.heightmap_resolution,
+            observe_objects=self.observe_objects,
+            camera_resolution=self.camera_resolution,
         )
 
     def set_scenes(
         self, scenes: Sequence[TerraShiftConfig], num_envs: Sequence[int], *, seed: int
     ) -> None:
         """Replaces the scenes by ``scenes`` with ``num_envs`` environments each (as many in all
-        as this env has, each scene within its padding and heightmap resolution); their
+        as this env has, each scene within its padding and with its observations); their
         episodes start at the next reset. Scene ``i``'s simulator is seeded with ``seed + i``.
         """
         if len(scenes) != len(num_envs):
@@ -109,6 +119,14 @@ class MixedSceneEnv(EnvBase):
                     f"{scene.heightmap_resolution}-ray heightmap does not fit this env's "
                     f"{self.num_agents} agents, {self.num_objects} object slots and "
                     f"{self.heightmap_resolution}-ray heightmap"
+                )
+            observed = (scene.camera_resolution, scene.observe_objects)
+            if observed != (self.camera_resolution, self.observe_objects):
+                raise ValueError(
+                    f"a scene with camera_resolution={scene.camera_resolution} and "
+                    f"observe_objects={scene.observe_objects} does not observe as this env, "
+                    f"camera_resolution={self.camera_resolution} and "
+                    f"observe_objects={self.observe_objects}: every scene needs the same"
                 )
         self.envs = [
             TerraShiftEnv(scene, num_envs=n, device=self.device, seed=seed + i)
@@ -184,8 +202,7 @@ class MixedSceneEnv(EnvBase):
 
     def _pad(self, out: TensorDictBase) -> TensorDictBase:
         n, k = out[GROUP].batch_size
-        m = out.get("objects").shape[1]
-        extra_agents, extra_objects = self.num_agents - k, self.num_objects - m
+        extra_agents = self.num_agents - k
         if extra_agents:
             agents = out.get(GROUP)
             padded = {
@@ -198,8 +215,10 @@ class MixedSceneEnv(EnvBase):
                     padded[key] = team[:, :1].expand(n, extra_agents, *team.shape[2:])
             extra = TensorDict(padded, batch_size=(n, extra_agents), device=out.device)
             out.set(GROUP, torch.cat([agents, extra], dim=1))
+        objects = out.get("objects", None)  # absent where the scenes do not observe them
+        extra_objects = 0 if objects is None else self.num_objects - objects.shape[1]
         if extra_objects:
-            objects, mask = out.get("objects"), out.get("objects_mask")
+            mask = out.get("objects_mask")
             padding = objects.new_zeros(n, extra_objects, OBJECT_FEATURES)
             out.set("objects", torch.cat([objects, padding], 1))
             out.set("objects_mask", torch.cat([mask, mask.new_zeros(n, extra_objects)], 1))

@@ -354,20 +354,8 @@ class Simulator:
             ],
         )
         self.actuator.launch_observe(self)
-        c = self.config.camera_resolution
-        if c:
-            wp.launch(
-                camera.render_camera,
-                dim=(n, c),
-                inputs=[
-                    m,
-                    d.column_height,
-                    d.goal_cell,
-                    d.sphere_active,
-                    d.sphere_position,
-                    d.camera,
-                ],
-            )
+        if self.config.camera_resolution:
+            camera.render(m, d, self.config, n)
 
     # --- execution ------------------------------------------------------------------------
     @contextlib.contextmanager

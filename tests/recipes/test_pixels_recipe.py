@@ -1,5 +1,6 @@
-"""The pixels recipe: trains from the camera without the object sequence; a scene that lacks
-what the networks read, or a teacher without the objects, is refused at start-up."""
+"""The pixels recipe: trains from the camera without the object sequence, in one scene or
+through a curriculum; a scene that lacks what the networks read, or a teacher without the
+objects, is refused at start-up."""
 
 import importlib.util
 import subprocess
@@ -20,8 +21,9 @@ TINY = ["env=smoke", "model=small", "train=smoke", "logger=none", "run.device=cp
 """The pixels recipe at the smoke config's sizes."""
 
 
-@pytest.mark.slow
-def test_the_pixels_recipe_trains_from_the_camera_alone(tmp_path):
+def train_pixels(tmp_path: Path, *overrides: str) -> tuple[str, dict]:
+    """Runs the pixels recipe at the smoke sizes with a 16 x 16 camera for 64 env-steps; its
+    output and its last checkpoint."""
     result = subprocess.run(
         [
             sys.executable,
@@ -31,8 +33,7 @@ def test_the_pixels_recipe_trains_from_the_camera_alone(tmp_path):
             *TINY,
             "env.camera_resolution=16",
             "run.total_env_steps=64",
-            "run.eval_every=1",
-            "run.eval_episodes=2",
+            *overrides,
             "hydra.run.dir=a",
         ],
         cwd=tmp_path,
@@ -41,12 +42,34 @@ def test_the_pixels_recipe_trains_from_the_camera_alone(tmp_path):
         timeout=600,
     )
     assert result.returncode == 0, result.stderr
-    checkpoint = load_checkpoint(tmp_path / "a/checkpoints/last.pt")
+    return result.stdout, load_checkpoint(tmp_path / "a/checkpoints/last.pt")
+
+
+@pytest.mark.slow
+def test_the_pixels_recipe_trains_from_the_camera_alone(tmp_path):
+    _, checkpoint = train_pixels(tmp_path, "run.eval_every=1", "run.eval_episodes=2")
     assert checkpoint["env_config"]["camera_resolution"] == 16
     assert checkpoint["env_config"]["observe_objects"] is False
     assert checkpoint["model_config"]["camera_channels"] == 1
     assert checkpoint["model_config"]["object_tokens"] is False
     assert not any("object_encoder" in name for name in checkpoint["networks"])
+
+
+@pytest.mark.slow
+def test_the_pixels_recipe_trains_through_a_curriculum(tmp_path):
+    output, checkpoint = train_pixels(
+        tmp_path,
+        "curriculum=auto",
+        "curriculum.start_grid_size=6",
+        "curriculum.start_num_agents=2",
+        "curriculum.start_num_objects=1",
+        "curriculum.stages=2",
+        "curriculum.threshold=0",  # advance at the first evaluation
+        "curriculum.eval_every=1",
+    )
+    assert "stage 2/2: 8x8 columns, 4 agents, 2 spheres from 32 env-steps" in output
+    assert checkpoint["curriculum"]["stage"] == 1
+    assert checkpoint["env_config"]["camera_resolution"] == 16
 
 
 @pytest.mark.parametrize(

@@ -150,6 +150,17 @@ def test_camera_matches_reference(shape):
     assert image.min() >= 0.0 and image.max() <= 1.0
 
 
+def test_odd_resolution_matches_reference():
+    # an odd side splits unevenly into the halves the terrain's threads share (box columns:
+    # with domes, the middle of an odd image's edge grazes the outer dome, where float32
+    # and float64 part)
+    sim = make_sim(column_shape="box", camera_resolution=47)
+    pose_scene_with_goals(sim, np.random.default_rng(SEED))
+    sim.observe()
+    for env in range(sim.num_envs):
+        assert_camera_matches_state(sim, env)
+
+
 def test_levels_tell_goals_spheres_and_pairs_apart():
     levels = camera_levels(4)
     flat = [level for pair in levels for level in pair]
@@ -230,6 +241,66 @@ def test_taller_columns_hide_a_sunk_sphere_and_spheres_hide_goals():
     sim.observe()
     image = sim.view("camera")[0, 0].numpy()
     assert image[pixel(sim, -0.25, -0.25)].item() == pytest.approx(TERRAIN_HIGH, abs=LEVEL_TOL)
+
+
+@pytest.mark.parametrize("shape", COLUMN_SHAPES)
+def test_overlapping_goals_and_spheres_match_reference(shape):
+    sim = make_sim(column_shape=shape, num_envs=1, num_goals=4)
+    cfg = sim.config
+    rng = np.random.default_rng(SEED)
+    heights = rng.uniform(-cfg.max_column_height, cfg.max_column_height, (1, 15, 15))
+    sim.view("column_height").copy_(torch.as_tensor(heights, dtype=torch.float32))
+    # three goal regions on neighbouring columns, each overlapping the other two, and one
+    # apart
+    sim.view("goal_cell").copy_(torch.tensor([[[6, 7], [7, 7], [7, 8], [2, 12]]]))
+    # three spheres overlapping one another, each wholly above the one before, and one over
+    # the goals
+    above, lift = cfg.column_rest_top + cfg.max_column_height + cfg.sphere_radius, 0.16
+    positions = [[0.2, -0.2, above], [0.26, -0.2, above + lift], [0.23, -0.15, above + 2 * lift]]
+    centres = column_centres(cfg)
+    positions.append([centres[7], centres[7], above])
+    sim.view("sphere_position").copy_(torch.tensor([positions], dtype=torch.float32))
+    sim.view("sphere_active").fill_(1)
+    sim.observe()
+    expected = assert_camera_matches_state(sim, 0)
+    levels = camera_levels(cfg.num_goals)
+    # every goal keeps a part of its region and every sphere a part of its disc, but the
+    # goals share their overlaps and the lower spheres are partly hidden
+    full_goal = np.pi * (cfg.goal_radius / (cfg.platform_size / 47)) ** 2
+    for c in range(3):
+        assert 0 < showing(expected, levels[c][0]).sum() < 0.8 * full_goal
+    full_sphere = np.pi * (cfg.sphere_radius / (cfg.platform_size / 47)) ** 2
+    for j in range(2):
+        assert 0 < showing(expected, levels[j][1]).sum() < 0.8 * full_sphere
+    assert showing(expected, levels[2][1]).sum() > 0.9 * full_sphere
+
+
+@pytest.mark.parametrize("shape", COLUMN_SHAPES)
+def test_objects_at_the_border_are_cut_by_the_image_edge(shape):
+    sim = make_sim(column_shape=shape, num_envs=1)
+    cfg = sim.config
+    half, last = 0.5 * cfg.platform_size, cfg.grid_size - 1
+    sim.view("column_height").zero_()
+    sim.view("goal_cell").copy_(torch.tensor([[[0, 0], [last, last]]]))  # opposite corners
+    z = cfg.column_rest_top + cfg.sphere_radius
+    positions = [
+        [-half + 0.02, 0.1, z],  # over the left edge
+        [half - 0.01, -half + 0.01, z],  # on a corner
+        [0.0, half + 0.03, z],  # centre beyond the top edge, a sliver seen
+        [half + 0.2, 0.0, z],  # wholly beyond the right edge
+    ]
+    sim.view("sphere_position").copy_(torch.tensor([positions], dtype=torch.float32))
+    sim.view("sphere_active").fill_(1)
+    sim.observe()
+    expected = assert_camera_matches_state(sim, 0)
+    image = sim.view("camera")[0, 0].numpy()
+    (goal_0, sphere_0), (goal_1, sphere_1) = camera_levels(cfg.num_goals)
+    assert showing(image[:, 0], sphere_0).any()  # the left edge
+    assert showing(image[0, :], sphere_1).any() and showing(image[:, -1], sphere_1).any()
+    assert showing(image[-1, :], sphere_0).any()  # the top edge (rows run along +y)
+    assert showing(image[0, 0], goal_0) and showing(image[-1, -1], goal_1)
+    # the sphere beyond the edge draws nothing: sphere 3's level shows only where sphere 1 is
+    assert np.array_equal(showing(image, sphere_1), showing(expected, sphere_1))
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])

@@ -1,0 +1,81 @@
+"""The mixed-scene env with the overhead camera: every scene's frame at one resolution, with
+or without the object sequence, through a curriculum's advance; scenes that observe otherwise
+are refused."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+from torchrl.envs.utils import check_env_specs
+
+from terrashift_rl.envs.mixed import MixedSceneEnv
+from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
+from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.training.curriculum import Curriculum, make_curriculum_env
+from terrashift_rl.training.settings import CurriculumSettings
+
+CAMERA = 16
+
+
+def scene(**overrides) -> TerraShiftConfig:
+    return TerraShiftConfig(
+        **{
+            "column_shape": "box",
+            "max_episode_steps": 8,
+            "heightmap_resolution": 8,
+            "camera_resolution": CAMERA,
+            "spawn_margin": 1,
+            **overrides,
+        }
+    )
+
+
+SMALL = {"grid_size": 8, "num_agents": 2, "num_objects": 1, "num_goals": 1}
+LARGE = {"grid_size": 12, "num_agents": 3, "num_objects": 2, "num_goals": 2}
+
+
+@pytest.mark.parametrize("observe_objects", [True, False])
+def test_every_scene_renders_its_own_frames_at_the_envs_resolution(observe_objects):
+    small = scene(**SMALL, observe_objects=observe_objects)
+    large = scene(**LARGE, observe_objects=observe_objects)
+    env = MixedSceneEnv([small, large], [2, 1], seed=0)
+    check_env_specs(env)
+    td = env.rollout(3)
+    assert td["camera"].shape == (3, 3, 1, CAMERA, CAMERA)
+    assert ("objects" in td) == observe_objects
+    # each scene's rows are the frames its own simulator drew, padded agents or not
+    last = td["next", "camera"][:, -1]
+    assert torch.equal(last[:2], env.envs[0].sim.view("camera"))
+    assert torch.equal(last[2:], env.envs[1].sim.view("camera"))
+    assert not torch.equal(last[0], last[2])
+
+
+def test_a_scene_that_observes_otherwise_is_refused_by_name():
+    with pytest.raises(ValueError, match="camera_resolution=8 and observe_objects=True does not"):
+        MixedSceneEnv([scene(), scene(camera_resolution=8)], [1, 1])
+    env = MixedSceneEnv([scene()], [2])
+    with pytest.raises(ValueError, match="observe_objects=False does not observe as this env"):
+        env.set_scenes([scene(observe_objects=False)], [2], seed=0)
+
+
+def test_the_curriculum_keeps_the_camera_frames_through_an_advance():
+    target = scene(**LARGE, observe_objects=False)
+    settings = CurriculumSettings(
+        stages=2, start_grid_size=8, start_num_agents=2, start_num_objects=1, mix=0.5
+    )
+    curriculum = Curriculum(target, settings)
+    model = dataclasses.replace(
+        TerraShiftModelConfig.small(), camera_channels=1, object_tokens=False
+    )
+    networks = make_terrashift_networks(model)
+    env = make_curriculum_env(curriculum, networks, num_envs=4, device="cpu", seed=0)
+    with torch.no_grad():
+        before = env.rollout(2, networks.actor)
+        curriculum.advance(env_steps=8)
+        curriculum.seat(env.base_env, seed=0)
+        after = env.rollout(2, networks.actor)
+    assert [s.grid_size for s in env.base_env.scenes] == [8, 12]
+    assert before["camera"].shape == after["camera"].shape == (4, 2, 1, CAMERA, CAMERA)
+    assert "objects" not in after
