@@ -11,10 +11,8 @@ import torch
 from torchrl.envs.utils import check_env_specs
 
 from terrashift_rl.envs.mixed import MixedSceneEnv
-from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
+from terrashift_rl.modules import TerraShiftModelConfig
 from terrashift_rl.sim import TerraShiftConfig
-from terrashift_rl.training.curriculum import Curriculum, make_curriculum_env
-from terrashift_rl.training.settings import CurriculumSettings
 
 CAMERA = 16
 
@@ -60,22 +58,11 @@ def test_a_scene_that_observes_otherwise_is_refused_by_name():
         env.set_scenes([scene(observe_objects=False)], [2], seed=0)
 
 
-def test_the_curriculum_keeps_the_camera_frames_through_an_advance():
-    target = scene(**LARGE, observe_objects=False)
-    settings = CurriculumSettings(
-        stages=2, start_grid_size=8, start_num_agents=2, start_num_objects=1, mix=0.5
-    )
-    curriculum = Curriculum(target, settings)
+def test_the_curriculum_keeps_the_camera_frames_through_an_advance(rollouts_around_an_advance):
     model = dataclasses.replace(
         TerraShiftModelConfig.small(), camera_channels=1, object_tokens=False
     )
-    networks = make_terrashift_networks(model)
-    env = make_curriculum_env(curriculum, networks, num_envs=4, device="cpu", seed=0)
-    with torch.no_grad():
-        before = env.rollout(2, networks.actor)
-        curriculum.advance(env_steps=8)
-        curriculum.seat(env.base_env, seed=0)
-        after = env.rollout(2, networks.actor)
+    env, before, after = rollouts_around_an_advance(scene(**LARGE, observe_objects=False), model)
     assert [s.grid_size for s in env.base_env.scenes] == [8, 12]
     assert before["camera"].shape == after["camera"].shape == (4, 2, 1, CAMERA, CAMERA)
     assert "objects" not in after

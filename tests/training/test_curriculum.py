@@ -14,7 +14,7 @@ from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_network
 from terrashift_rl.objectives import ValueNormalizer
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training.algorithms import MAPOCAConfig
-from terrashift_rl.training.curriculum import Curriculum, make_curriculum_env, stage_scenes
+from terrashift_rl.training.curriculum import Curriculum, stage_scenes
 from terrashift_rl.training.settings import CurriculumSettings
 
 
@@ -142,19 +142,9 @@ def test_a_mixed_env_restored_from_its_state_steps_as_the_saved_one_did():
     torch.testing.assert_close(restored.step(td)["next"], expected)
 
 
-def test_the_curriculum_env_keeps_its_shapes_through_an_advance():
+def test_the_curriculum_env_keeps_its_shapes_through_an_advance(rollouts_around_an_advance):
     target = tiny(grid_size=12, num_agents=4, num_objects=2, num_goals=2, spawn_margin=1)
-    settings = CurriculumSettings(
-        stages=2, start_grid_size=8, start_num_agents=2, start_num_objects=1, mix=0.5
-    )
-    curriculum = Curriculum(target, settings)
-    networks = make_terrashift_networks(TerraShiftModelConfig.small())
-    env = make_curriculum_env(curriculum, networks, num_envs=4, device="cpu", seed=0)
-    with torch.no_grad():
-        before = env.rollout(2, networks.actor)
-        curriculum.advance(env_steps=8)
-        curriculum.seat(env.base_env, seed=0)
-        after = env.rollout(2, networks.actor)
+    env, before, after = rollouts_around_an_advance(target, TerraShiftModelConfig.small())
     assert [scene.grid_size for scene in env.base_env.scenes] == [8, 12]
     assert before["agents", "observation"].shape == after["agents", "observation"].shape
     assert before["agents", "mask"][:, 0].sum(-1).tolist() == [2, 2, 2, 2]
