@@ -215,7 +215,9 @@ def profile_iteration(trainer: OnPolicyTrainer, device: torch.device, rows: int)
 
 
 def recipe_trainer(overrides: list[str], device: torch.device) -> OnPolicyTrainer:
-    """A trainer with the pretraining recipe's scene, network and training settings."""
+    """A trainer with the pretraining recipe's scene, network and training settings, its
+    networks initialised from seed 0 as ``measure``'s are."""
+    torch.manual_seed(0)
     register_config_schemas()
     with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
         settings = RecipeConfig.of(compose(config_name="mapoca_pretrain", overrides=overrides))
