@@ -19,6 +19,10 @@ Per seed, from the run's logs:
 - ``final_goal_fraction``: the last evaluation's; ``curve``: every evaluation's env-steps,
   training seconds and goal fraction; ``launch_seconds``: the process's wall clock.
 
+With ``--stop-at-goal`` a seed's run is stopped, as Ctrl-C stops it (checkpoint written), at its
+first evaluation that reaches every threshold: the times to goal are the same, the GPU is free
+sooner, and ``final_goal_fraction`` is that evaluation's.
+
 The JSON holds ``device``, ``date``, ``command``, ``seeds`` (one entry per seed), the medians over
 seeds ``env_steps_per_s`` and ``median_seconds_to_goal`` (to the first threshold; null unless
 more than half the seeds reached it) and prints a table.
@@ -34,6 +38,7 @@ import argparse
 import math
 import os
 import shlex
+import signal
 import statistics
 import subprocess
 import sys
@@ -121,7 +126,7 @@ def run_seeds(args: argparse.Namespace, folder: Path) -> list[dict]:
     # the GPUs this process sees, as CUDA_VISIBLE_DEVICES names them for the seeds' processes
     visible = os.environ.get("CUDA_VISIBLE_DEVICES", ",".join(map(str, range(gpus)))).split(",")
     slots = max(1, gpus // args.processes) if gpus else 1
-    pending, running, done = list(args.seeds), {}, []
+    pending, running, done, stopped = list(args.seeds), {}, [], set()
     free = list(range(slots))
     while pending or running:
         while pending and free:
@@ -144,6 +149,9 @@ def run_seeds(args: argparse.Namespace, folder: Path) -> list[dict]:
         time.sleep(1.0)
         for seed, (process, slot, start, log, run_dir) in list(running.items()):
             elapsed = time.perf_counter() - start
+            if args.stop_at_goal and seed not in stopped and reached(run_dir, args.thresholds):
+                os.killpg(process.pid, signal.SIGINT)  # once: a second Ctrl-C skips the save
+                stopped.add(seed)
             if process.poll() is None and elapsed < 60 * args.minutes + args.grace:
                 continue
             if process.returncode is None:
@@ -153,12 +161,19 @@ def run_seeds(args: argparse.Namespace, folder: Path) -> list[dict]:
             del running[seed]
             free.append(slot)
             tail = (folder / f"seed_{seed}.log").read_text()[-4000:]
-            if process.returncode != 0:
+            if process.returncode != 0 and not (seed in stopped and process.returncode == 130):
                 raise SystemExit(f"seed {seed} failed (status {process.returncode}):\n{tail}")
             (scalars,) = run_dir.glob("logs/*/scalars")
             done.append(summarize(seed, scalars, args.thresholds, elapsed))
             print(table_row(table_cells(done[-1], args.thresholds)), flush=True)
     return sorted(done, key=lambda entry: entry["seed"])
+
+
+def reached(run_dir: Path, thresholds: list[float]) -> bool:
+    """Whether a running seed's logs hold an evaluation at or above every threshold."""
+    scalars = next(run_dir.glob("logs/*/scalars"), None)
+    _, goal_fractions = read_series(scalars, GOAL) if scalars else ([], [])
+    return any(goal >= max(thresholds) for goal in goal_fractions)
 
 
 def table_cells(entry: dict, thresholds: list[float]) -> list[str]:
@@ -199,6 +214,9 @@ def main() -> None:
     )
     parser.add_argument(
         "--overrides", nargs="+", default=[], metavar="KEY=VALUE", help="more recipe overrides"
+    )
+    parser.add_argument(
+        "--stop-at-goal", action="store_true", help="stop a seed once it reaches every threshold"
     )
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--keep", type=Path, default=None, help="keep the runs' folders here")
@@ -241,6 +259,7 @@ def main() -> None:
         "eval_every": args.eval_every,
         "thresholds": args.thresholds,
         "processes": args.processes,
+        "stop_at_goal": args.stop_at_goal,
         "seeds": seeds,
         "env_steps_per_s": statistics.median(s["env_steps_per_s"] for s in seeds),
         "median_seconds_to_goal": None if median == math.inf else median,
