@@ -33,7 +33,7 @@ import warp as wp
 
 from terrashift_rl.sim.columns import column_center, column_top, smooth_surface
 from terrashift_rl.sim.config import TerraShiftConfig
-from terrashift_rl.sim.observations import MISS, surface_height
+from terrashift_rl.sim.observations import MISS
 from terrashift_rl.sim.types import SHAPE_BOX, SHAPE_ELLIPSOID, Data, Model
 
 # nothing differentiates through it; on CUDA, divisions and square roots may be approximate
@@ -109,10 +109,109 @@ def pixel_coordinate(model: Model, camera_model: CameraModel, i: int) -> float:
 
 
 @wp.func
+def pixel_cell(model: Model, camera_model: CameraModel, i: int) -> int:
+    """Column index (along the same axis) under pixel row (or column) ``i``."""
+    return wp.min(int(float(i) * camera_model.step_in_cells), model.grid_size - 1)
+
+
+@wp.func
+def pixels_within(model: Model, camera_model: CameraModel, centre: float, reach: float) -> wp.vec2i:
+    """First and last pixel rows (or columns) within ``reach`` [m] of ``centre`` [m], widened
+    to whole pixels and clamped to the image."""
+    lo = int(wp.floor((centre - reach + model.half_platform) * camera_model.to_step))
+    hi = int(wp.ceil((centre + reach + model.half_platform) * camera_model.to_step))
+    return wp.vec2i(wp.max(lo, 0), wp.min(hi, model.camera_resolution - 1))
+
+
+@wp.func
+def chord_rows(
+    model: Model, camera_model: CameraModel, x: float, centre: wp.vec2, reach: float
+) -> wp.vec2i:
+    """First and last pixel rows where the pixel column at ``x`` [m] may fall within
+    ``reach`` [m] of ``centre`` [m]; none (first > last) where the disc does not reach x."""
+    chord2 = reach * reach - (x - centre[0]) * (x - centre[0])
+    rows = wp.vec2i(model.camera_resolution, -1)
+    if chord2 >= 0.0:
+        rows = pixels_within(model, camera_model, centre[1], wp.sqrt(chord2))
+    return rows
+
+
+@wp.func
+def overlap(a: wp.vec2i, b: wp.vec2i) -> bool:
+    """Whether the row ranges ``a`` and ``b`` (first, last) share a row."""
+    return a[0] <= b[1] and b[0] <= a[1]
+
+
+@wp.func
+def column_surface(
+    model: Model,
+    camera_model: CameraModel,
+    height: wp.array3d(dtype=float),
+    e: int,
+    top: float,
+    dx: float,
+    dy: float,
+    x: float,
+    y: float,
+) -> float:
+    """Height [m] of the columns' surface at (x, y) [m] (``surface_height``'s surface), MISS
+    on the platform: ``top`` [m] is the top of the column under (x, y) and (dx, dy) [m] the
+    offset from that column's centre."""
+    z = float(MISS)
+    if model.column_shape == SHAPE_BOX:
+        z = top
+    elif model.column_shape == SHAPE_ELLIPSOID:
+        rho2 = (dx * dx + dy * dy) * camera_model.to_dome
+        if rho2 <= 1.0 + 1.0e-5:  # as surface_height: the platform edge grazes the domes
+            z = top - model.column_half_height * (1.0 - wp.sqrt(wp.max(1.0 - rho2, 0.0)))
+    else:
+        z = smooth_surface(model, height, height, e, x, y, 1.0)[0]
+    return z
+
+
+@wp.func
+def pixel_surface(
+    model: Model,
+    camera_model: CameraModel,
+    height: wp.array3d(dtype=float),
+    e: int,
+    cx: int,
+    cy: int,
+) -> float:
+    """Height [m] of the columns' surface at pixel (cx, cy) as ``draw_terrain`` shades it,
+    MISS on the platform."""
+    ix = pixel_cell(model, camera_model, cx)
+    iy = pixel_cell(model, camera_model, cy)
+    x = pixel_coordinate(model, camera_model, cx)
+    y = pixel_coordinate(model, camera_model, cy)
+    top = column_top(model, height, height, e, iy, ix, 1.0)
+    dx = x - column_center(model, ix)
+    dy = y - column_center(model, iy)
+    return column_surface(model, camera_model, height, e, top, dx, dy, x, y)
+
+
+@wp.func
+def terrain_level(camera_model: CameraModel, z: float) -> float:
+    """Grey level of the columns' surface at height z [m]; the platform (MISS) is 0."""
+    level = float(0.0)
+    if z != MISS:
+        level = camera_model.shade_gain * z + camera_model.shade_offset
+        level = wp.clamp(level, TERRAIN_LOW, TERRAIN_HIGH)
+    return level
+
+
+@wp.func
+def goal_centre(model: Model, cell: wp.vec2i) -> wp.vec2:
+    """Horizontal position [m] of the centre of goal column ``cell``."""
+    return wp.vec2(column_center(model, cell[0]), column_center(model, cell[1]))
+
+
+@wp.func
 def goal_distance2(model: Model, cell: wp.vec2i, x: float, y: float) -> float:
     """Squared horizontal distance [m^2] from (x, y) to the centre of goal column ``cell``."""
-    dx = x - column_center(model, cell[0])
-    dy = y - column_center(model, cell[1])
+    centre = goal_centre(model, cell)
+    dx = x - centre[0]
+    dy = y - centre[1]
     return dx * dx + dy * dy
 
 
@@ -147,16 +246,16 @@ def sphere_top(model: Model, p: wp.vec3, x: float, y: float) -> float:
 @wp.func
 def front_sphere(
     model: Model,
-    height: wp.array3d(dtype=float),
     active: wp.array2d(dtype=wp.int32),
     position: wp.array2d(dtype=wp.vec3),
     e: int,
     x: float,
     y: float,
+    surface: float,
 ) -> int:
-    """The active sphere a vertical ray at (x, y) meets first, above the columns' surface, the
-    lower index on a tie; -1 if none."""
-    top = surface_height(model, height, e, x, y)
+    """The active sphere a vertical ray at (x, y) meets first, above the columns' surface at
+    height ``surface`` [m] there, the lower index on a tie; -1 if none."""
+    top = surface
     front = int(-1)
     for j in range(model.num_objects):
         if active[e, j] != 0:
@@ -165,46 +264,6 @@ def front_sphere(
                 top = z
                 front = j
     return front
-
-
-@wp.func
-def pixels_within(model: Model, camera_model: CameraModel, centre: float, reach: float) -> wp.vec2i:
-    """First and last pixel rows (or columns) within ``reach`` [m] of ``centre`` [m], widened
-    to whole pixels and clamped to the image."""
-    lo = int(wp.floor((centre - reach + model.half_platform) * camera_model.to_step))
-    hi = int(wp.ceil((centre + reach + model.half_platform) * camera_model.to_step))
-    return wp.vec2i(wp.max(lo, 0), wp.min(hi, model.camera_resolution - 1))
-
-
-@wp.func
-def terrain_level(
-    model: Model,
-    camera_model: CameraModel,
-    height: wp.array3d(dtype=float),
-    e: int,
-    top: float,
-    dx: float,
-    dy: float,
-    x: float,
-    y: float,
-) -> float:
-    """Grey level of the columns' surface at (x, y) [m] (``surface_height``'s surface), or of
-    the platform: ``top`` [m] is the top of the column under it and (dx, dy) [m] the offset
-    from that column's centre."""
-    z = float(MISS)
-    if model.column_shape == SHAPE_BOX:
-        z = top
-    elif model.column_shape == SHAPE_ELLIPSOID:
-        rho2 = (dx * dx + dy * dy) * camera_model.to_dome
-        if rho2 <= 1.0 + 1.0e-5:  # as surface_height: the platform edge grazes the domes
-            z = top - model.column_half_height * (1.0 - wp.sqrt(wp.max(1.0 - rho2, 0.0)))
-    else:
-        z = smooth_surface(model, height, height, e, x, y, 1.0)[0]
-    level = float(0.0)
-    if z != MISS:
-        level = camera_model.shade_gain * z + camera_model.shade_offset
-        level = wp.clamp(level, TERRAIN_LOW, TERRAIN_HIGH)
-    return level
 
 
 @wp.kernel
@@ -224,11 +283,10 @@ def draw_terrain(
     e, cx = wp.tid()
     c = model.camera_resolution
     cx_right = cx + (c + 1) / 2
-    last = model.grid_size - 1
     x = pixel_coordinate(model, camera_model, cx)
     x_right = pixel_coordinate(model, camera_model, cx_right)
-    ix = wp.min(int(float(cx) * camera_model.step_in_cells), last)
-    ix_right = wp.min(int(float(cx_right) * camera_model.step_in_cells), last)
+    ix = pixel_cell(model, camera_model, cx)
+    ix_right = pixel_cell(model, camera_model, cx_right)
     dx = x - column_center(model, ix)
     dx_right = x_right - column_center(model, ix_right)
     iy_read = int(-1)
@@ -237,17 +295,19 @@ def draw_terrain(
     yc = float(0.0)
     for cy in range(c):
         y = pixel_coordinate(model, camera_model, cy)
-        iy = wp.min(int(float(cy) * camera_model.step_in_cells), last)
+        iy = pixel_cell(model, camera_model, cy)
         if iy != iy_read:  # the columns under these pixels and their centres' y
             iy_read = iy
             top = column_top(model, height, height, e, iy, ix, 1.0)
             top_right = column_top(model, height, height, e, iy, ix_right, 1.0)
             yc = column_center(model, iy)
-        camera[e, 0, cy, cx] = terrain_level(model, camera_model, height, e, top, dx, y - yc, x, y)
+        z = column_surface(model, camera_model, height, e, top, dx, y - yc, x, y)
+        camera[e, 0, cy, cx] = terrain_level(camera_model, z)
         if cx_right < c:
-            camera[e, 0, cy, cx_right] = terrain_level(
+            z = column_surface(
                 model, camera_model, height, e, top_right, dx_right, y - yc, x_right, y
             )
+            camera[e, 0, cy, cx_right] = terrain_level(camera_model, z)
 
 
 @wp.kernel
@@ -258,26 +318,26 @@ def draw_goals(
     camera: wp.array4d(dtype=float),
 ):
     """Paints each goal's region over the terrain where that goal is the nearest, a column of
-    the pixels around one goal per thread; the goals are compared only in a column that
-    another goal's region reaches over as well.
+    the pixels around one goal per thread; the goals are compared only where another goal's
+    region may reach the same pixels of the column.
 
     Launch dim: [num_envs, G, box] as (env, goal, column of the goal's box of pixels); ``box``
     is at least the number of pixel columns within ``goal_radius`` of a point.
     """
     e, c, k = wp.tid()
     cell = goal_cell[e, c]
-    gx = column_center(model, cell[0])
+    centre = goal_centre(model, cell)
     reach = model.goal_radius
-    cx = pixels_within(model, camera_model, gx, reach)[0] + k
+    cx = pixels_within(model, camera_model, centre[0], reach)[0] + k
     x = pixel_coordinate(model, camera_model, cx)
-    chord2 = reach * reach - (x - gx) * (x - gx)
-    if cx >= model.camera_resolution or chord2 <= 0.0:
+    rows = chord_rows(model, camera_model, x, centre, reach)
+    if cx >= model.camera_resolution or rows[0] > rows[1]:
         return
     shared = bool(False)
     for other in range(model.num_goals):
-        if other != c and wp.abs(x - column_center(model, goal_cell[e, other][0])) < reach:
+        other_centre = goal_centre(model, goal_cell[e, other])
+        if other != c and overlap(rows, chord_rows(model, camera_model, x, other_centre, reach)):
             shared = True
-    rows = pixels_within(model, camera_model, column_center(model, cell[1]), wp.sqrt(chord2))
     level = marker_level(model.num_goals, c, 0)
     for cy in range(rows[0], rows[1] + 1):
         y = pixel_coordinate(model, camera_model, cy)
@@ -300,8 +360,8 @@ def draw_spheres(
     camera: wp.array4d(dtype=float),
 ):
     """Draws each active sphere where it is the first thing a ray from above meets, a column
-    of the pixels around one sphere per thread; the spheres are compared only in a column
-    that another sphere reaches over as well.
+    of the pixels around one sphere per thread; the spheres are compared only where another
+    sphere may reach the same pixels of the column.
 
     Launch dim: [num_envs, M, box] as (env, sphere, column of the sphere's box of pixels);
     ``box`` is at least the number of pixel columns within ``sphere_radius`` of a point.
@@ -313,23 +373,24 @@ def draw_spheres(
     reach = model.sphere_radius
     cx = pixels_within(model, camera_model, p[0], reach)[0] + k
     x = pixel_coordinate(model, camera_model, cx)
-    chord2 = reach * reach - (x - p[0]) * (x - p[0])
-    if cx >= model.camera_resolution or chord2 < 0.0:
+    rows = chord_rows(model, camera_model, x, wp.vec2(p[0], p[1]), reach)
+    if cx >= model.camera_resolution or rows[0] > rows[1]:
         return
     shared = bool(False)
     for other in range(model.num_objects):
-        reaches = wp.abs(x - position[e, other][0]) <= reach
+        q = position[e, other]
+        reaches = overlap(rows, chord_rows(model, camera_model, x, wp.vec2(q[0], q[1]), reach))
         if other != j and active[e, other] != 0 and reaches:
             shared = True
-    rows = pixels_within(model, camera_model, p[1], wp.sqrt(chord2))
     level = marker_level(model.num_goals, j % model.num_goals, 1)
     for cy in range(rows[0], rows[1] + 1):
         y = pixel_coordinate(model, camera_model, cy)
+        surface = pixel_surface(model, camera_model, height, e, cx, cy)
         front = bool(False)
         if shared:
-            front = front_sphere(model, height, active, position, e, x, y) == j
+            front = front_sphere(model, active, position, e, x, y, surface) == j
         else:
-            front = sphere_top(model, p, x, y) > surface_height(model, height, e, x, y)
+            front = sphere_top(model, p, x, y) > surface
         if front:
             camera[e, 0, cy, cx] = level
 
