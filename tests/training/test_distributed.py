@@ -219,6 +219,8 @@ def test_the_recipes_under_torchrun_write_from_rank_zero_alone(tmp_path, device)
     # one Hydra folder (rank 0's), one line of summary
     (run_dir,) = [path.parent for path in tmp_path.glob("outputs/*/*/config.yaml")]
     assert pretrain.stdout.count("env-steps in 1 iterations") == 1
+    # the smoke config's 2 mini-batches of 4 environments: 4 of 1 on each rank
+    assert pretrain.stdout.count("each splitting its batch into 4 mini-batches per epoch") == 1
     last = load_checkpoint(run_dir / "checkpoints/last.pt")
     assert last["env_steps"] == 64 and last["world_size"] == WORLD_SIZE
 
