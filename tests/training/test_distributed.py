@@ -1,6 +1,7 @@
 """Data-parallel training: two gloo processes (two NCCL processes on a host with two GPUs) train
-the smoke config, checkpoint and resume, with identical parameters after every update; the
-recipes under torchrun; a rank that stops answering or dies ends the run with a message; the
+the smoke config, checkpoint and resume, with identical parameters after every update; each
+splits its batch twice as finely as one process, or refuses a split it cannot make; the recipes
+under torchrun; a rank that stops answering or dies ends the run with a message; the
 process-group helpers in a single process."""
 
 import importlib.util
