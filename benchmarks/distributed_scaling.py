@@ -5,7 +5,8 @@ For each process count N that the host holds, launches
     torchrun --standalone --nproc_per_node=N recipes/mapoca_pretrain.py <recipe's defaults>
 
 for ``--warmup`` + ``--iters`` iterations (every rank keeps the recipe's ``train.num_envs``, so
-the global batch is N times one GPU's), without evaluation, best.pt or periodic checkpoints,
+the global batch is N times one GPU's, and splits it into N x ``train.minibatches`` mini-batches,
+so a step averages one GPU's mini-batch), without evaluation, best.pt or periodic checkpoints,
 logging to CSV. Reported per N: the median over the timed iterations of the logged env-steps/s
 (every rank's collected env-steps over its iteration's seconds, summed over the ranks), of
 collection alone, and of the update's seconds; the speed-up over the first N measured and the

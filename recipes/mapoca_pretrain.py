@@ -214,6 +214,14 @@ def train(
     if main:
         limit = "" if run.minutes is None else f" or {run.minutes:g} minutes, whichever is first"
         log.info(f"{run.name}: {planned:,} env-steps{limit}; checkpoints in {shown(checkpoints)}")
+        processes, minibatches = distributed.world_size(), settings.train.minibatches
+        if processes > 1:
+            log.info(
+                f"{processes} processes of {num_envs:,} environments, each splitting its batch "
+                f"into {trainer.minibatches} mini-batches per epoch (train.minibatches="
+                f"{minibatches} x {processes}): an optimiser step averages "
+                f"{num_envs // minibatches:,} sequences, as with one process"
+            )
     progress = tqdm(
         total=planned if deadline is None else None,  # known after the first iteration
         initial=trainer.env_steps,

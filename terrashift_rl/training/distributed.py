@@ -3,7 +3,10 @@
 Every process (a *rank*) builds its own ``train.num_envs`` environments on its own device
 (``cuda:LOCAL_RANK`` with NCCL, or the CPU with gloo) with its own seed, collects its own batch
 and takes the same optimiser steps as every other rank, on gradients averaged over all of them;
-the global batch is ``world_size`` times a single process's. What the ranks exchange:
+the global batch is ``world_size`` times a single process's. Each rank splits its batch into
+``world_size`` times ``train.minibatches`` mini-batches, so that an optimiser step averages as
+many sequences, and a run takes as many steps per env-step, as a single process. What the ranks
+exchange:
 
 - once, when the trainer is built: rank 0's parameters and buffers (:func:`broadcast_from_main`);
 - at every mini-batch: the gradients (with ``lr_schedule=adaptive`` also the KL estimate the

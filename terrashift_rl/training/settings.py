@@ -118,13 +118,14 @@ class TrainConfig:
     """
 
     num_envs: int = setting(2048, at_least(1))
-    """Environments stepped together."""
+    """Environments stepped together (by each process under torchrun)."""
     steps_per_iteration: int = setting(32, at_least(1))
     """Decisions collected per environment per iteration; also the GRU's training sequence."""
     epochs: int = setting(2, at_least(1))
     """Passes over each collected batch."""
     minibatches: int = setting(8, at_least(1))
-    """Mini-batches per epoch (each holds num_envs / minibatches whole sequences)."""
+    """Mini-batches per epoch, each of num_envs / minibatches whole sequences in all: under
+    torchrun each of N processes splits its own batch into N x minibatches."""
     lr_trunk_policy: float = setting(1.0e-3, above(0))
     """AdamW learning rate of the trunk and the policy head at the start (3e-4 barely moves
     a Beta policy per update)."""
@@ -195,16 +196,21 @@ class TrainConfig:
         """The algorithm, a key of :data:`~terrashift_rl.training.algorithms.ALGORITHMS`."""
         return self.loss.algo
 
-    def validate(self) -> None:
+    def minibatches_per_process(self, processes: int = 1) -> int:
+        """Mini-batches per epoch of each of ``processes`` data-parallel processes."""
+        return processes * self.minibatches
+
+    def validate(self, *, processes: int = 1) -> None:
         """Raises ``ValueError`` naming the first setting of the wrong type or outside its
-        allowed range, or an impossible combination, saying what to change."""
+        allowed range, or an impossible combination (with ``processes``), saying what to change."""
         check_fields(self, "train")
         self.loss.validate()
-        if self.minibatches > self.num_envs:
+        if self.minibatches_per_process(processes) > self.num_envs:
+            several = f" x {processes} processes" if processes > 1 else ""
             raise ValueError(
-                f"train.minibatches ({self.minibatches}) exceeds train.num_envs "
-                f"({self.num_envs}): a mini-batch holds whole environment sequences, so use at "
-                f"most {self.num_envs} mini-batches or more environments"
+                f"train.minibatches ({self.minibatches}){several} exceeds train.num_envs "
+                f"({self.num_envs}): a mini-batch holds whole environment sequences, so use "
+                f"fewer mini-batches{several and ' or processes'} or more environments"
             )
         if self.lr_schedule == "adaptive" and not (
             self.lr_min <= self.lr_trunk_policy <= self.lr_max
@@ -374,7 +380,7 @@ class RecipeConfig:
     def of(cls, cfg: DictConfig) -> RecipeConfig:
         """The settings the composed config ``cfg`` holds, every one checked (the ``loss`` group
         goes into :attr:`TrainConfig.loss`)."""
-        values = _values(cfg)
+        values = OmegaConf.to_container(cfg, resolve=True)
         groups = [*(field.name for field in dataclasses.fields(cls)), "loss"]
         unknown = [key for key in values if key not in groups]
         if unknown:
@@ -445,7 +451,7 @@ class EvaluateConfig:
     @classmethod
     def of(cls, cfg: DictConfig) -> EvaluateConfig:
         """The settings the composed config ``cfg`` holds, every one checked."""
-        return build(cls, _values(cfg), "")
+        return build(cls, OmegaConf.to_container(cfg, resolve=True), "")
 
 
 # --- what the settings make together ------------------------------------------------------------
@@ -537,10 +543,6 @@ def check_loss_range(train: TrainConfig, env: TerraShiftConfig) -> None:
                 f"({squared_return:.3g}) goes beyond float32's largest number "
                 f"({FLOAT32_MAX:.3g}): the loss would be infinite; lower loss.{name}"
             )
-
-
-def _values(cfg: DictConfig) -> dict[str, Any]:
-    return OmegaConf.to_container(cfg, resolve=True)
 
 
 def register_config_schemas() -> None:

@@ -17,9 +17,10 @@ The collection loop is written out (``env.step_and_maybe_reset``) rather than de
 collector, because a checkpoint has to hold the tensordict carried between iterations and the
 scene's state (a hook's): a resumed run then continues exactly where the killed one stopped.
 
-Built in each process of a torch.distributed group (``torchrun``), the trainers train
+Built in each of N processes of a torch.distributed group (``torchrun``), the trainers train
 data-parallel (:mod:`terrashift_rl.training.distributed`): each collects from its own
-environments, and all take the same steps on gradients averaged over the processes.
+environments and splits its batch N times finer (:attr:`OnPolicyTrainer.minibatches`), and all
+take the same steps on gradients averaged over the processes.
 """
 
 from __future__ import annotations
@@ -49,11 +50,9 @@ from terrashift_rl.training.settings import TrainConfig
 _KL_STEP = 1.5
 """Factor by which the adaptive schedule moves the learning rates after a mini-batch."""
 _RANK_KEYS = ("torch_rng", "cuda_rng", "carry")
-"""What each process of a data-parallel run holds of its own in a checkpoint, besides its hooks'
-state."""
+"""What each data-parallel process holds of its own in a checkpoint, besides its hooks' state."""
 _SUMMED_METRICS = ("env_steps_per_s", "collection_steps_per_s")
-"""The trainer's metrics of a data-parallel iteration that add up over the processes (the
-others average)."""
+"""The trainer's metrics that add up over the processes of a data-parallel run (others average)."""
 _TERM_SETTINGS = {
     "loss_critic": "value_coeff",
     "loss_baseline": "baseline_coeff",
@@ -114,6 +113,8 @@ class OnPolicyTrainer:
         algorithm: the loss and what the loop needs of it
             (:class:`~terrashift_rl.training.algorithms.Algorithm`).
         loss: ``algorithm.loss``.
+        minibatches: mini-batches per epoch of this process's batch, ``config.minibatches``
+            times the number of processes.
 
     Args:
         env: a batched environment; ``step_and_maybe_reset`` carries its episodes on.
@@ -144,7 +145,7 @@ class OnPolicyTrainer:
         hooks: Sequence[TrainerHook] = (),
         policy_outputs: Sequence[NestedKey] | None = None,
     ):
-        config.validate()
+        config.validate(processes=distributed.world_size())
         if len(optimizer.param_groups) != 2:
             raise ValueError(
                 "the optimizer must have two parameter groups, the policy's then the critics', "
@@ -154,6 +155,7 @@ class OnPolicyTrainer:
         self.policy = policy
         self.networks = networks
         self.config = config
+        self.minibatches = config.minibatches_per_process(distributed.world_size())
         self.device = env.device
         self.algorithm = algorithm
         self.loss = algorithm.loss
@@ -269,7 +271,7 @@ class OnPolicyTrainer:
         with distributed.watch("the mini-batch updates (all-reduces of the gradients)"):
             for _ in range(config.epochs):
                 order = torch.randperm(data.shape[0], device=self.device)
-                for index in order.chunk(config.minibatches):
+                for index in order.chunk(self.minibatches):
                     step = (len(index), warmup)  # one graph per mini-batch size and kind of step
                     if step not in self._update_steps:
                         self._update_steps[step] = self._minibatch_update(critics_only=warmup)

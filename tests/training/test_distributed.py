@@ -1,6 +1,7 @@
 """Data-parallel training: two gloo processes (two NCCL processes on a host with two GPUs) train
-the smoke config, checkpoint and resume, with identical parameters after every update; the
-recipes under torchrun; a rank that stops answering or dies ends the run with a message; the
+the smoke config, checkpoint and resume, with identical parameters after every update; each
+splits its batch twice as finely as one process, or refuses a split it cannot make; the recipes
+under torchrun; a rank that stops answering or dies ends the run with a message; the
 process-group helpers in a single process."""
 
 import importlib.util
@@ -16,6 +17,7 @@ import pytest
 import torch
 import torch.multiprocessing as mp
 from hydra import compose, initialize_config_dir
+from test_algorithms import eight_environments
 
 from terrashift_rl.training import OnPolicyTrainer, distributed, load_checkpoint
 
@@ -43,11 +45,9 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
-def train_resume_and_record(rank: int, port: int, folder: Path, device: str) -> None:
-    """One rank, as torchrun would start it: a straight run of 3 iterations (a), a run of 1
-    (b) and b resumed to 3 (c), with the adaptive learning rate, on ``device`` (``cpu``: gloo;
-    ``cuda``: NCCL, CUDA graphs and deterministic algorithms); after every update, this rank's
-    parameters, return statistics and learning rates go to a file."""
+def join(rank: int, port: int, device: str) -> None:
+    """Joins the group of ``WORLD_SIZE`` processes at ``port`` as ``rank``, with the variables
+    that torchrun would set."""
     os.environ.update(
         MASTER_ADDR="127.0.0.1",
         MASTER_PORT=str(port),
@@ -57,8 +57,16 @@ def train_resume_and_record(rank: int, port: int, folder: Path, device: str) -> 
         LOCAL_WORLD_SIZE=str(WORLD_SIZE),
     )
     torch.set_num_threads(1)
-    # joined once: the recipe's train() stays in a group it finds and leaves one it joined
     distributed.init_process_group(device, key="run.device")
+
+
+def train_resume_and_record(rank: int, port: int, folder: Path, device: str) -> None:
+    """One rank, as torchrun would start it: a straight run of 3 iterations (a), a run of 1
+    (b) and b resumed to 3 (c), with the adaptive learning rate, on ``device`` (``cpu``: gloo;
+    ``cuda``: NCCL, CUDA graphs and deterministic algorithms); after every update, this rank's
+    parameters, return statistics and learning rates go to a file."""
+    # joined once: the recipe's train() stays in a group it finds and leaves one it joined
+    join(rank, port, device)
     updates = []
     train_iteration = OnPolicyTrainer.train_iteration
 
@@ -145,6 +153,45 @@ def test_two_processes_train_alike_checkpoint_and_resume_exactly(tmp_path, devic
     assert any(not torch.equal(simulators[0][key], simulators[1][key]) for key in simulators[0])
 
 
+def minibatches_of_one_iteration(trainer: OnPolicyTrainer) -> dict:
+    """The sizes of the mini-batches that one iteration's loss runs on (in sequences), and the
+    optimiser steps it takes (AdamW's step count)."""
+    sizes = []
+    trainer.loss.register_forward_pre_hook(lambda _, inputs: sizes.append(inputs[0].shape[0]))
+    trainer.train_iteration()
+    (steps,) = {int(state["step"]) for state in trainer.optimizer.state.values()}
+    return {"sizes": sizes, "steps": steps, "minibatches": trainer.minibatches}
+
+
+def split_into_minibatches(rank: int, port: int, folder: Path) -> None:
+    """One of two gloo ranks: one iteration of 8 environments with ``train.minibatches=2``,
+    then the trainer of ``train.minibatches=5``, which two processes cannot split 8 into."""
+    join(rank, port, "cpu")
+    counted = minibatches_of_one_iteration(eight_environments("mapoca", "cpu", minibatches=2))
+    try:
+        eight_environments("mapoca", "cpu", minibatches=5)
+    except ValueError as error:
+        counted["refusal"] = str(error)
+    distributed.destroy_process_group()
+    torch.save(counted, folder / f"rank{rank}.pt")
+
+
+def test_each_rank_splits_its_batch_so_that_a_step_averages_one_process_mini_batch(tmp_path):
+    single = minibatches_of_one_iteration(eight_environments("mapoca", "cpu", minibatches=2))
+    # 2 epochs x 2 mini-batches of 4 of the 8 sequences
+    assert single == {"sizes": [4] * 4, "steps": 4, "minibatches": 2}
+    mp.spawn(split_into_minibatches, args=(free_port(), tmp_path), nprocs=WORLD_SIZE, join=True)
+    for rank in range(WORLD_SIZE):
+        counted = torch.load(tmp_path / f"rank{rank}.pt")
+        # twice the mini-batches, each half the size: a step of both ranks averages 4 sequences
+        assert counted.pop("refusal") == (
+            "train.minibatches (5) x 2 processes exceeds train.num_envs (8): a mini-batch holds "
+            "whole environment sequences, so use fewer mini-batches or processes or more "
+            "environments"
+        )
+        assert counted == {"sizes": [2] * 8, "steps": 2 * single["steps"], "minibatches": 4}
+
+
 def torchrun(script: Path, folder: Path, *overrides: str) -> subprocess.CompletedProcess:
     """``script`` (a recipe) under torchrun with two processes and the smoke config, in
     ``folder``."""
@@ -173,6 +220,8 @@ def test_the_recipes_under_torchrun_write_from_rank_zero_alone(tmp_path, device)
     # one Hydra folder (rank 0's), one line of summary
     (run_dir,) = [path.parent for path in tmp_path.glob("outputs/*/*/config.yaml")]
     assert pretrain.stdout.count("env-steps in 1 iterations") == 1
+    # the smoke config's 2 mini-batches of 4 environments: 4 of 1 on each rank
+    assert pretrain.stdout.count("each splitting its batch into 4 mini-batches per epoch") == 1
     last = load_checkpoint(run_dir / "checkpoints/last.pt")
     assert last["env_steps"] == 64 and last["world_size"] == WORLD_SIZE
 
