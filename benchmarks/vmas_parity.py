@@ -2,8 +2,7 @@
 
     pip install -e ".[vmas]"
     python benchmarks/vmas_parity.py --scenarios balance:8 navigation:8 reverse_transport:8 \
-        wheel:8 --seeds 0 1 2 3 4 --device cuda --minibatch-size 400 --deadline 420 \
-        --out-dir results/vmas
+        wheel:8 --seeds 0 1 2 3 4 --minibatch-size 400 --jobs 40 --out-dir results/vmas
     python benchmarks/vmas_parity.py --table results/vmas/vmas_parity_*.json
 
 Every run is ``examples/mapoca_vs_mappo.py``'s ``run`` (same actor, frames, loop and optimiser

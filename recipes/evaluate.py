@@ -70,7 +70,8 @@ def main(cfg: DictConfig) -> None:
         scene = settings.env
         if checkpoint is not None:
             check_action_mode(checkpoint, scene, "checkpoint")
-    scene = evaluation_scene(scene, respawn=settings.respawn)
+    # the surface's work on the spheres, the actuator's energy, is counted for every policy
+    scene = evaluation_scene(scene, respawn=settings.respawn).replace(count_surface_work=True)
     results: dict = {"scene": dataclasses.asdict(scene), "episodes": settings.episodes}
 
     networks = None

@@ -328,6 +328,9 @@ def test_smoke_train_resume_and_finetune(tmp_path):
         assert report[name]["episodes"] == 3
         assert 0.0 <= report[name]["success_rate"] <= 1.0
     assert set(report["baselines"]) == {"random", "zero", "heuristic"}
+    # the energy: the heuristic's surface pushes its spheres
+    assert report["scene"]["count_surface_work"]
+    assert report["baselines"]["heuristic"]["surface_work_per_episode"] > 0
     with Image.open(tmp_path / "e/rollout.gif") as video:
         assert video.n_frames >= 2  # the reset frame and one per decision (GIFs merge repeats)
 
