@@ -21,7 +21,9 @@ Per seed, from the run's logs:
 
 With ``--stop-at-goal`` a seed's run is stopped, as Ctrl-C stops it (checkpoint written), at its
 first evaluation that reaches every threshold: the times to goal are the same, the GPU is free
-sooner, and ``final_goal_fraction`` is that evaluation's.
+sooner, and ``final_goal_fraction`` is that evaluation's. Ctrl-C stops the running seeds the same
+way and writes what every seed has logged so far (``interrupted`` in the JSON and in the entries
+of the seeds it cut short; seeds not started are left out), then exits with status 130.
 
 The JSON holds ``device``, ``date``, ``command``, ``seeds`` (one entry per seed), the medians over
 seeds ``env_steps_per_s`` and ``median_seconds_to_goal`` (to the first threshold; null unless
@@ -120,53 +122,84 @@ def summarize(seed: int, scalars: Path, thresholds: list[float], launch_seconds:
     }
 
 
-def run_seeds(args: argparse.Namespace, folder: Path) -> list[dict]:
-    """Trains every seed, ``slots`` at a time, each on its own GPUs; returns their entries."""
+def run_seeds(args: argparse.Namespace, folder: Path) -> tuple[list[dict], bool]:
+    """Trains every seed, ``slots`` at a time, each on its own GPUs; returns their entries and
+    whether Ctrl-C cut the benchmark short (:func:`interrupt`)."""
     gpus = torch.cuda.device_count() if not args.smoke else 0
     # the GPUs this process sees, as CUDA_VISIBLE_DEVICES names them for the seeds' processes
     visible = os.environ.get("CUDA_VISIBLE_DEVICES", ",".join(map(str, range(gpus)))).split(",")
     slots = max(1, gpus // args.processes) if gpus else 1
     pending, running, done, stopped = list(args.seeds), {}, [], set()
     free = list(range(slots))
-    while pending or running:
-        while pending and free:
-            seed, slot = pending.pop(0), free.pop(0)
-            run_dir = folder / f"seed_{seed}"
-            env = {"OMP_NUM_THREADS": "1", **os.environ}
-            if gpus:
-                first = slot * args.processes
-                env["CUDA_VISIBLE_DEVICES"] = ",".join(visible[first : first + args.processes])
-            log = (folder / f"seed_{seed}.log").open("w")
-            process = subprocess.Popen(
-                recipe_command(seed, args, run_dir),
-                cwd=folder,
-                env=env,
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                start_new_session=True,  # torchrun's ranks are stopped with it on a timeout
-            )
-            running[seed] = (process, slot, time.perf_counter(), log, run_dir)
-        time.sleep(1.0)
-        for seed, (process, slot, start, log, run_dir) in list(running.items()):
-            elapsed = time.perf_counter() - start
-            if args.stop_at_goal and seed not in stopped and reached(run_dir, args.thresholds):
-                os.killpg(process.pid, signal.SIGINT)  # once: a second Ctrl-C skips the save
-                stopped.add(seed)
-            if process.poll() is None and elapsed < 60 * args.minutes + args.grace:
-                continue
-            if process.returncode is None:
-                os.killpg(process.pid, 9)
-                process.wait()
-            log.close()
-            del running[seed]
-            free.append(slot)
-            tail = (folder / f"seed_{seed}.log").read_text()[-4000:]
-            if process.returncode != 0 and not (seed in stopped and process.returncode == 130):
-                raise SystemExit(f"seed {seed} failed (status {process.returncode}):\n{tail}")
-            (scalars,) = run_dir.glob("logs/*/scalars")
-            done.append(summarize(seed, scalars, args.thresholds, elapsed))
-            print(table_row(table_cells(done[-1], args.thresholds)), flush=True)
-    return sorted(done, key=lambda entry: entry["seed"])
+    try:
+        while pending or running:
+            while pending and free:
+                seed, slot = pending.pop(0), free.pop(0)
+                run_dir = folder / f"seed_{seed}"
+                env = {"OMP_NUM_THREADS": "1", **os.environ}
+                if gpus:
+                    first = slot * args.processes
+                    env["CUDA_VISIBLE_DEVICES"] = ",".join(visible[first : first + args.processes])
+                log = (folder / f"seed_{seed}.log").open("w")
+                process = subprocess.Popen(
+                    recipe_command(seed, args, run_dir),
+                    cwd=folder,
+                    env=env,
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                    start_new_session=True,  # torchrun's ranks are stopped with it on a timeout
+                )
+                running[seed] = (process, slot, time.perf_counter(), log, run_dir)
+            time.sleep(1.0)
+            for seed, (process, slot, start, log, run_dir) in list(running.items()):
+                elapsed = time.perf_counter() - start
+                if args.stop_at_goal and seed not in stopped and reached(run_dir, args.thresholds):
+                    os.killpg(process.pid, signal.SIGINT)  # once: a second Ctrl-C skips the save
+                    stopped.add(seed)
+                if process.poll() is None and elapsed < 60 * args.minutes + args.grace:
+                    continue
+                if process.returncode is None:
+                    os.killpg(process.pid, 9)
+                    process.wait()
+                log.close()
+                del running[seed]
+                free.append(slot)
+                tail = (folder / f"seed_{seed}.log").read_text()[-4000:]
+                if process.returncode != 0 and not (seed in stopped and process.returncode == 130):
+                    raise SystemExit(f"seed {seed} failed (status {process.returncode}):\n{tail}")
+                (scalars,) = run_dir.glob("logs/*/scalars")
+                done.append(summarize(seed, scalars, args.thresholds, elapsed))
+                print(table_row(table_cells(done[-1], args.thresholds)), flush=True)
+    except KeyboardInterrupt:
+        done += interrupt(running, stopped, args.thresholds)
+        return sorted(done, key=lambda entry: entry["seed"]), True
+    return sorted(done, key=lambda entry: entry["seed"]), False
+
+
+def interrupt(running: dict, stopped: set[int], thresholds: list[float]) -> list[dict]:
+    """After Ctrl-C: stops every running seed as Ctrl-C stops a run (checkpoint written; killed
+    if it has not ended within a minute; those ``stopped`` at their goal already are only
+    waited for) and returns the entries of those that logged an evaluation, marked
+    ``interrupted``."""
+    for seed, (process, *_) in running.items():
+        if seed not in stopped:
+            os.killpg(process.pid, signal.SIGINT)
+    entries = []
+    for seed, (process, _, start, log, run_dir) in running.items():
+        try:
+            process.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, 9)
+            process.wait()
+        log.close()
+        scalars = next(run_dir.glob("logs/*/scalars"), None)
+        if scalars is None or not read_series(scalars, GOAL)[0]:
+            print(f"seed {seed}: interrupted before its first evaluation", flush=True)
+            continue
+        elapsed = time.perf_counter() - start
+        entries.append({**summarize(seed, scalars, thresholds, elapsed), "interrupted": True})
+        print(table_row(table_cells(entries[-1], thresholds)), "(interrupted)", flush=True)
+    return entries
 
 
 def reached(run_dir: Path, thresholds: list[float]) -> bool:
@@ -245,13 +278,15 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as scratch:
         folder = args.keep or Path(scratch)
         folder.mkdir(parents=True, exist_ok=True)
-        seeds = run_seeds(args, folder.resolve())
+        seeds, interrupted = run_seeds(args, folder.resolve())
+    if not seeds:
+        raise SystemExit("interrupted before any seed's first evaluation: nothing written")
     goal = f"{args.thresholds[0]:g}"
-    reached = sorted(
+    to_goal = sorted(
         math.inf if s["to_goal"][goal]["seconds"] is None else s["to_goal"][goal]["seconds"]
         for s in seeds
     )
-    median = statistics.median(reached)
+    median = statistics.median(to_goal)
     payload = {
         **header,
         "recipe_command": shlex.join(example),
@@ -260,10 +295,11 @@ def main() -> None:
         "thresholds": args.thresholds,
         "processes": args.processes,
         "stop_at_goal": args.stop_at_goal,
+        "interrupted": interrupted,
         "seeds": seeds,
         "env_steps_per_s": statistics.median(s["env_steps_per_s"] for s in seeds),
         "median_seconds_to_goal": None if median == math.inf else median,
-        "seeds_at_goal": sum(value != math.inf for value in reached),
+        "seeds_at_goal": sum(value != math.inf for value in to_goal),
     }
     write_results(args.out, payload)
     seconds = "not reached" if median == math.inf else f"{median:.0f} s"
@@ -271,6 +307,8 @@ def main() -> None:
         f"median over {len(seeds)} seed(s): {payload['env_steps_per_s']:,.0f} env-steps/s, "
         f"{seconds} to {goal} ({payload['seeds_at_goal']} seed(s) reached it); wrote {args.out}"
     )
+    if interrupted:
+        raise SystemExit(130)
 
 
 if __name__ == "__main__":

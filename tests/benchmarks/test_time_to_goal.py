@@ -1,9 +1,11 @@
 """time_to_goal.py: a seed's time to a goal fraction from its logs, evaluation time not counted;
-the smoke launch end to end."""
+the smoke launch end to end, stopped at its goal and by Ctrl-C."""
 
 import json
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -80,3 +82,27 @@ def test_stop_at_goal_interrupts_a_seed_at_its_first_evaluation_past_every_thres
     assert seed["to_goal"]["0"]["env_steps"] == 4 * 8 and seed["launch_seconds"] < 300
     assert (keep / "seed_0" / "checkpoints" / "last.pt").is_file()
     assert "run.resume=seed_0/checkpoints/last.pt" in (keep / "seed_0.log").read_text()
+
+
+@pytest.mark.slow
+def test_ctrl_c_writes_what_the_running_seed_logged_and_exits_130(tmp_path):
+    out, keep = tmp_path / "time_to_goal.json", tmp_path / "runs"
+    command = [sys.executable, str(SCRIPT), "--smoke", "--seeds", "0", "--minutes", "10"]
+    command += ["--eval-every", "1", "--thresholds", "0.99", "--grace", "0"]
+    benchmark = subprocess.Popen(
+        [*command, "--out", str(out), "--keep", str(keep)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    evaluations = keep / "seed_0" / "logs" / "smoke" / "scalars" / "eval_goal_fraction.csv"
+    deadline = time.monotonic() + 300  # a hang guard: the first evaluation comes within seconds
+    while not (evaluations.is_file() and evaluations.read_text()) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    benchmark.send_signal(signal.SIGINT)  # as Ctrl-C in a terminal reaches the benchmark
+    output, _ = benchmark.communicate(timeout=300)
+    assert benchmark.returncode == 130, output
+    payload = json.loads(out.read_text())
+    (seed,) = payload["seeds"]
+    assert payload["interrupted"] and seed["interrupted"] and seed["evaluations"] >= 1
+    assert (keep / "seed_0" / "checkpoints" / "last.pt").is_file()  # stopped as Ctrl-C stops it
