@@ -154,7 +154,7 @@ def run_seeds(args: argparse.Namespace, folder: Path) -> tuple[list[dict], bool]
             for seed, (process, slot, start, log, run_dir) in list(running.items()):
                 elapsed = time.perf_counter() - start
                 if args.stop_at_goal and seed not in stopped and reached(run_dir, args.thresholds):
-                    os.killpg(process.pid, signal.SIGINT)  # once: a second Ctrl-C skips the save
+                    ctrl_c(process, args.processes)
                     stopped.add(seed)
                 if process.poll() is None and elapsed < 60 * args.minutes + args.grace:
                     continue
@@ -165,25 +165,29 @@ def run_seeds(args: argparse.Namespace, folder: Path) -> tuple[list[dict], bool]
                 del running[seed]
                 free.append(slot)
                 tail = (folder / f"seed_{seed}.log").read_text()[-4000:]
-                if process.returncode != 0 and not (seed in stopped and process.returncode == 130):
+                if process.returncode != 0 and not (
+                    seed in stopped and ended_by_ctrl_c(process.returncode, args.processes, tail)
+                ):
                     raise SystemExit(f"seed {seed} failed (status {process.returncode}):\n{tail}")
                 (scalars,) = run_dir.glob("logs/*/scalars")
                 done.append(summarize(seed, scalars, args.thresholds, elapsed))
                 print(table_row(table_cells(done[-1], args.thresholds)), flush=True)
     except KeyboardInterrupt:
-        done += interrupt(running, stopped, args.thresholds)
+        done += interrupt(running, stopped, args.thresholds, args.processes)
         return sorted(done, key=lambda entry: entry["seed"]), True
     return sorted(done, key=lambda entry: entry["seed"]), False
 
 
-def interrupt(running: dict, stopped: set[int], thresholds: list[float]) -> list[dict]:
+def interrupt(
+    running: dict, stopped: set[int], thresholds: list[float], processes: int
+) -> list[dict]:
     """After Ctrl-C: stops every running seed as Ctrl-C stops a run (checkpoint written; killed
     if it has not ended within a minute; those ``stopped`` at their goal already are only
     waited for) and returns the entries of those that logged an evaluation, marked
     ``interrupted``."""
     for seed, (process, *_) in running.items():
         if seed not in stopped:
-            os.killpg(process.pid, signal.SIGINT)
+            ctrl_c(process, processes)
     entries = []
     for seed, (process, _, start, log, run_dir) in running.items():
         try:
@@ -200,6 +204,21 @@ def interrupt(running: dict, stopped: set[int], thresholds: list[float]) -> list
         entries.append({**summarize(seed, scalars, thresholds, elapsed), "interrupted": True})
         print(table_row(table_cells(entries[-1], thresholds)), "(interrupted)", flush=True)
     return entries
+
+
+def ctrl_c(process: subprocess.Popen, processes: int) -> None:
+    """Ctrl-C to a seed's run, once: a run signalled twice quits without its checkpoint. Under
+    torchrun to torchrun alone, which passes it on to every rank."""
+    if processes > 1:
+        process.send_signal(signal.SIGINT)
+    else:
+        os.killpg(process.pid, signal.SIGINT)
+
+
+def ended_by_ctrl_c(status: int, processes: int, log_tail: str) -> bool:
+    """Whether a run that :func:`ctrl_c` stopped ended as Ctrl-C ends one: the recipe with status
+    130, torchrun by raising the signal it passed on."""
+    return status == 130 or (processes > 1 and "SignalException" in log_tail)
 
 
 def reached(run_dir: Path, thresholds: list[float]) -> bool:

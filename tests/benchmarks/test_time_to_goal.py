@@ -66,9 +66,13 @@ def test_the_smoke_setting_runs_two_seeds_on_the_cpu(tmp_path):
 
 
 @pytest.mark.slow
-def test_stop_at_goal_interrupts_a_seed_at_its_first_evaluation_past_every_threshold(tmp_path):
+@pytest.mark.parametrize("processes", [1, 2])  # 2: under torchrun (gloo)
+def test_stop_at_goal_interrupts_a_seed_at_its_first_evaluation_past_every_threshold(
+    tmp_path, processes
+):
     out, keep = tmp_path / "time_to_goal.json", tmp_path / "runs"
     command = [sys.executable, str(SCRIPT), "--smoke", "--seeds", "0", "--minutes", "10"]
+    command += ["--processes", str(processes)]
     command += ["--eval-every", "1", "--thresholds", "0", "--stop-at-goal", "--grace", "0"]
     result = subprocess.run(
         [*command, "--out", str(out), "--keep", str(keep)],
@@ -79,7 +83,8 @@ def test_stop_at_goal_interrupts_a_seed_at_its_first_evaluation_past_every_thres
     assert result.returncode == 0, result.stderr
     (seed,) = json.loads(out.read_text())["seeds"]
     # stopped long before its 10 minutes, as Ctrl-C stops a run: with its checkpoint
-    assert seed["to_goal"]["0"]["env_steps"] == 4 * 8 and seed["launch_seconds"] < 300
+    assert seed["to_goal"]["0"]["env_steps"] == processes * 4 * 8
+    assert seed["launch_seconds"] < 300
     assert (keep / "seed_0" / "checkpoints" / "last.pt").is_file()
     assert "run.resume=seed_0/checkpoints/last.pt" in (keep / "seed_0.log").read_text()
 
