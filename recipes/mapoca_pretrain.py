@@ -195,7 +195,12 @@ def train(
     def evaluate_now(label: str) -> dict[str, float]:
         start = time.monotonic()
         scores = evaluate_periodically(
-            eval_env, networks.actor, seed=run.eval_seed, sampled=run.eval_sampled, progress=label
+            eval_env,
+            networks.actor,
+            seed=run.eval_seed,
+            sampled=run.eval_sampled,
+            progress=label,
+            policies=trainer.evaluation_policy,
         )
         return {**scores, "eval_seconds": time.monotonic() - start}
 

@@ -326,7 +326,7 @@ class CurriculumHook(TrainerHook):
             return stage
         scores, passed = {}, False
         if self.make_evaluation_env is not None:
-            scores = self._evaluate()
+            scores = self._evaluate(trainer)
             passed = curriculum.passes(scores["eval_goal_fraction"])
         if distributed.any_process(passed):
             curriculum.advance(env_steps=trainer.env_steps)
@@ -337,11 +337,16 @@ class CurriculumHook(TrainerHook):
             **{f"curriculum_{name}": value for name, value in scores.items()},
         }
 
-    def _evaluate(self) -> dict[str, float]:
+    def _evaluate(self, trainer: OnPolicyTrainer) -> dict[str, float]:
         stage = self.curriculum.stage
         if self._evaluation is None or self._evaluation[0] != stage:
             self._evaluation = (stage, self.make_evaluation_env(self.curriculum.scene))
-        return evaluate_periodically(self._evaluation[1], self.actor, seed=self.eval_seed)
+        return evaluate_periodically(
+            self._evaluation[1],
+            self.actor,
+            seed=self.eval_seed,
+            policies=trainer.evaluation_policy,
+        )
 
     def state_dict(self) -> dict[str, Any]:
         return {

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import torch
@@ -251,7 +252,13 @@ def evaluate_baselines(
 
 
 def evaluate_periodically(
-    env: EnvBase, actor: Callable, *, seed: int, sampled: bool = False, progress: str | None = None
+    env: EnvBase,
+    actor: Callable,
+    *,
+    seed: int,
+    sampled: bool = False,
+    progress: str | None = None,
+    policies: Callable[[ExplorationType], Policy] | None = None,
 ) -> dict[str, float]:
     """Scores ``actor``'s mean action (:func:`evaluate`) on the same scenes at every call:
     ``env`` is reseeded with ``seed`` first, so that the scores of one run's successive
@@ -261,10 +268,15 @@ def evaluate_periodically(
     With ``sampled``, the policy's sampled actions are scored too, on the same scenes, with
     the metrics prefixed ``eval_sampled_``: they draw from torch's generator seeded with
     ``seed`` inside a fork of it, so that training's random stream is left as it was.
-    ``progress`` labels a bar over each evaluation's decisions; none without it."""
+    ``progress`` labels a bar over each evaluation's decisions; none without it.
+    ``policies`` gives ``actor``'s policy of an exploration type, :func:`actor_policy` if
+    None; a trainer's :meth:`~terrashift_rl.training.trainer.OnPolicyTrainer.evaluation_policy`
+    replays it as a CUDA graph kept from one evaluation to the next."""
+    if policies is None:
+        policies = functools.partial(actor_policy, actor)
     env.set_seed(seed)
     actor.eval()
-    mean = actor_policy(actor, ExplorationType.DETERMINISTIC)
+    mean = policies(ExplorationType.DETERMINISTIC)
     metrics = evaluate(env, mean, progress=progress or False)
     scores = {f"eval_{name}": metrics[name] for name in HEADLINE}
     if sampled:
@@ -275,7 +287,7 @@ def evaluate_periodically(
         with torch.random.fork_rng(devices=cuda):
             torch.manual_seed(seed)
             env.set_seed(seed)
-            samples = actor_policy(actor, ExplorationType.RANDOM)
+            samples = policies(ExplorationType.RANDOM)
             metrics = evaluate(env, samples, progress=progress and f"{progress} (samples)")
         scores.update({f"eval_sampled_{name}": metrics[name] for name in HEADLINE})
     return scores

@@ -11,7 +11,8 @@ parameters (for MA-POCA, GAE from the centralised value and counterfactual basel
 and a recurrent policy runs over them from the state stored at each sequence start (torchrl's
 recurrent mode). On CUDA the actor's step and each mini-batch update are replayed as CUDA graphs
 (``cuda_graphs``); the update only where the algorithm's loss runs without host
-synchronisation (MA-POCA's).
+synchronisation (MA-POCA's). So is the step of an evaluation's policy
+(:meth:`OnPolicyTrainer.evaluation_policy`).
 
 The collection loop is written out (``env.step_and_maybe_reset``) rather than delegated to a
 collector, because a checkpoint has to hold the tensordict carried between iterations and the
@@ -247,8 +248,35 @@ class OnPolicyTrainer:
         environments changed, a curriculum's next stage), as the run's first one does."""
         self._carry = None
 
+    def evaluation_policy(
+        self, exploration: ExplorationType
+    ) -> Callable[[TensorDictBase], TensorDictBase]:
+        """The policy acting with ``exploration`` as an evaluation plays it
+        (:func:`~terrashift_rl.training.evaluation.evaluate_periodically`): outside collection's
+        autocast, writing the policy's outputs into the tensordict it is given. With CUDA graphs
+        its step is replayed as a graph captured under ``exploration``, one per exploration
+        type and input shapes (a curriculum stage's evaluation scenes have their own), and kept
+        for later evaluations until the trainer's graphs are reset."""
+
+        def policy(tensordict: TensorDictBase) -> TensorDictBase:
+            inputs = tensordict.select(*self._actor_inputs, strict=False)
+            shapes = tuple(
+                (key, value.shape, value.dtype) for key, value in inputs.items(True, True)
+            )
+            step = self._evaluation_steps.get((exploration, shapes))
+            if step is None:
+                act = functools.partial(self._act_with, exploration)
+                step = self._evaluation_steps[exploration, shapes] = self._graphed(act)
+            return tensordict.update(step(inputs).clone())  # a graph's outputs are reused
+
+        return policy
+
     def _act(self, tensordict: TensorDictBase) -> TensorDictBase:
         return self.policy(tensordict).select(*self._actor_outputs)
+
+    def _act_with(self, exploration: ExplorationType, tensordict: TensorDictBase) -> TensorDictBase:
+        with set_exploration_type(exploration):
+            return self._act(tensordict)
 
     def update(self, data: TensorDictBase) -> dict[str, float]:
         """Value estimation once, then epochs of shuffled mini-batches of sequences."""
@@ -546,6 +574,7 @@ class OnPolicyTrainer:
 
     def _reset_graphs(self) -> None:
         self._actor_step = self._graphed(self._act)
+        self._evaluation_steps: dict[tuple, Callable] = {}  # by exploration type and shapes
         self._update_steps: dict[tuple[int, bool], Callable] = {}
         self._stepped: dict[bool, list[torch.nn.Parameter]] = {}
 

@@ -1,4 +1,5 @@
-"""evaluate / evaluate_baselines: one episode per environment, metrics a hand count agrees with."""
+"""evaluate / evaluate_baselines: one episode per environment, metrics a hand count agrees with;
+a trainer's evaluation policy, replayed as CUDA graphs, against the eager actor."""
 
 import math
 
@@ -10,7 +11,7 @@ from terrashift_rl.envs import GROUP, TerraShiftEnv
 from terrashift_rl.envs.baselines import RandomPolicy, ScriptedHeuristicPolicy, ZeroPolicy
 from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
 from terrashift_rl.sim import REWARD_TERMS, TerraShiftConfig
-from terrashift_rl.training import make_training_env
+from terrashift_rl.training import TrainConfig, make_training_env, terrashift
 from terrashift_rl.training.evaluation import (
     HEADLINE,
     evaluate,
@@ -18,6 +19,7 @@ from terrashift_rl.training.evaluation import (
     evaluate_periodically,
     evaluation_scene,
 )
+from terrashift_rl.training.graphs import CudaGraphed
 
 STEPS = 96
 CFG = TerraShiftConfig(max_episode_steps=STEPS, respawn=False)
@@ -194,3 +196,64 @@ def test_periodic_evaluation_scores_the_samples_too_without_touching_training_ra
     assert evaluate_periodically(env, networks.actor, seed=5, sampled=True) == first
     sampled = [first[f"eval_sampled_{name}"] for name in HEADLINE]
     assert sampled != [first[f"eval_{name}"] for name in HEADLINE]
+
+
+PERIODIC = TerraShiftConfig(max_episode_steps=12, respawn=False)
+CUDA = torch.device("cuda")
+
+
+def trainer_of(networks, device: torch.device, *, cuda_graphs: bool = True):
+    """A trainer of ``networks`` on four environments of :data:`PERIODIC`."""
+    env = make_training_env(PERIODIC, networks, num_envs=4, device=device, seed=0)
+    config = TrainConfig(
+        num_envs=4, steps_per_iteration=8, minibatches=1, tf32=False, cuda_graphs=cuda_graphs
+    )
+    return terrashift.make_trainer(env, networks, config)
+
+
+def scored(trainer, env) -> dict[str, float]:
+    """The periodic evaluation's mean and sampled scores of ``trainer``'s evaluation policy."""
+    policies = trainer.evaluation_policy
+    return evaluate_periodically(env, trainer.policy, seed=5, sampled=True, policies=policies)
+
+
+def test_a_trainers_evaluation_policy_scores_as_the_actor_does_on_the_cpu():
+    networks = make_terrashift_networks(TerraShiftModelConfig.small())
+    trainer = trainer_of(networks, torch.device("cpu"))
+    env = make_training_env(PERIODIC, networks, num_envs=4, device=torch.device("cpu"), seed=5)
+    assert scored(trainer, env) == evaluate_periodically(env, networks.actor, seed=5, sampled=True)
+    steps = trainer._evaluation_steps.values()
+    assert len(steps) == 2  # one per exploration type, eager off CUDA
+    assert not any(isinstance(step, CudaGraphed) for step in steps)
+
+
+@pytest.mark.gpu
+def test_a_trainers_evaluation_replays_the_policy_as_graphs_kept_across_evaluations():
+    torch.manual_seed(0)
+    networks = make_terrashift_networks(TerraShiftModelConfig.small()).to(CUDA)
+    envs = [make_training_env(PERIODIC, networks, num_envs=n, device=CUDA, seed=0) for n in (4, 6)]
+    scores = {}
+    for graphs in (False, True):
+        trainer = trainer_of(networks, CUDA, cuda_graphs=graphs)
+        steps = trainer._evaluation_steps
+        first = scored(trainer, envs[0])
+        kept = dict(steps)  # one step per exploration type
+        # again on the same environments, then on six: other shapes, other steps
+        scores[graphs] = [first, scored(trainer, envs[0]), scored(trainer, envs[1])]
+        assert len(kept) == 2 and all(steps[key] is step for key, step in kept.items())
+        assert len(steps) == 4
+        assert all(isinstance(step, CudaGraphed) == graphs for step in steps.values())
+        if graphs:  # captured at the first evaluation of each shape, replayed at the second
+            assert all(step.captured for step in steps.values())
+    replayed, eager = scores[True], scores[False]
+    assert replayed[0] == replayed[1]  # the same scenes, samples and replays
+    # A graph replays the kernels of an eager call, but cuBLAS may choose other algorithms for
+    # a capture, so the mean actions can differ in their last bits: the outcomes of 12
+    # decisions are the same, the rewards the same up to rounding.
+    for graphed, plain in zip(replayed, eager, strict=True):
+        for name in HEADLINE:
+            key = f"eval_{name}"
+            if name == "mean_reward_per_decision":
+                assert graphed[key] == pytest.approx(plain[key], rel=1e-4, abs=1e-6)
+            else:
+                assert graphed[key] == plain[key], key
