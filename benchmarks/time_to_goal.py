@@ -21,9 +21,10 @@ Per seed, from the run's logs:
 
 With ``--stop-at-goal`` a seed's run is stopped, as Ctrl-C stops it (checkpoint written), at its
 first evaluation that reaches every threshold: the times to goal are the same, the GPU is free
-sooner, and ``final_goal_fraction`` is that evaluation's. Ctrl-C stops the running seeds the same
-way and writes what every seed has logged so far (``interrupted`` in the JSON and in the entries
-of the seeds it cut short; seeds not started are left out), then exits with status 130.
+sooner, and ``final_goal_fraction`` is that evaluation's. Ctrl-C (or SIGTERM) stops the running
+seeds the same way and writes what every seed has logged so far (``interrupted`` in the JSON and
+in the entries of the seeds it cut short; seeds not started are left out), then exits with
+status 130.
 
 The JSON holds ``device``, ``date``, ``command``, ``seeds`` (one entry per seed), the medians over
 seeds ``env_steps_per_s`` and ``median_seconds_to_goal`` (to the first threshold; null unless
@@ -294,6 +295,10 @@ def main() -> None:
     goals = [f"to {t:g}: s, env-steps" for t in args.thresholds]
     columns = ["seed", *goals, "final", "env-steps/s", "collect / estimate / epochs s", "eval s"]
     print(table_header(columns))
+    # Ctrl-C, also to a benchmark started in the background (which begins with SIGINT
+    # ignored), and a scheduler's SIGTERM stop the seeds as Ctrl-C does (run_seeds)
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, signal.default_int_handler)
     with tempfile.TemporaryDirectory() as scratch:
         folder = args.keep or Path(scratch)
         folder.mkdir(parents=True, exist_ok=True)

@@ -89,8 +89,14 @@ def test_stop_at_goal_interrupts_a_seed_at_its_first_evaluation_past_every_thres
     assert "run.resume=seed_0/checkpoints/last.pt" in (keep / "seed_0.log").read_text()
 
 
+def ignore_sigint() -> None:
+    """As a shell without job control starts a background job: SIGINT ignored."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 @pytest.mark.slow
-def test_ctrl_c_writes_what_the_running_seed_logged_and_exits_130(tmp_path):
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_writes_what_the_running_seed_logged_and_exits_130(tmp_path, stop):
     out, keep = tmp_path / "time_to_goal.json", tmp_path / "runs"
     command = [sys.executable, str(SCRIPT), "--smoke", "--seeds", "0", "--minutes", "10"]
     command += ["--eval-every", "1", "--thresholds", "0.99", "--grace", "0"]
@@ -99,12 +105,13 @@ def test_ctrl_c_writes_what_the_running_seed_logged_and_exits_130(tmp_path):
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
+        preexec_fn=ignore_sigint,  # a background job: the benchmark must catch SIGINT itself
     )
     evaluations = keep / "seed_0" / "logs" / "smoke" / "scalars" / "eval_goal_fraction.csv"
     deadline = time.monotonic() + 300  # a hang guard: the first evaluation comes within seconds
     while not (evaluations.is_file() and evaluations.read_text()) and time.monotonic() < deadline:
         time.sleep(0.5)
-    benchmark.send_signal(signal.SIGINT)  # as Ctrl-C in a terminal reaches the benchmark
+    benchmark.send_signal(stop)  # as Ctrl-C in a terminal, or a scheduler, reaches the benchmark
     output, _ = benchmark.communicate(timeout=300)
     assert benchmark.returncode == 130, output
     payload = json.loads(out.read_text())
