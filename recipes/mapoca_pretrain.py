@@ -47,6 +47,7 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 from terrashift_rl.modules import make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training import distributed, make_trainer, make_training_env
+from terrashift_rl.training.budget import iterate_until, planned_env_steps
 from terrashift_rl.training.checkpoint import (
     RESUME_KEYS,
     WEIGHTS_KEYS,
@@ -78,7 +79,6 @@ from terrashift_rl.training.launch import (
 from terrashift_rl.training.loggers import close_logger, log_scalars, logger_run_id, make_logger
 from terrashift_rl.training.settings import RecipeConfig, register_config_schemas
 from terrashift_rl.training.signals import StopRequest
-from terrashift_rl.training.trainer import iterate_until, planned_env_steps
 
 register_config_schemas()
 register_run_folder()

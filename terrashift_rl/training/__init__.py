@@ -1,6 +1,7 @@
 """Training utilities the recipes compose: the settings room, the on-policy trainer and its
-algorithms (MA-POCA, MAPPO, IPPO), TerraShift's parts and hooks for it, schedules, checkpoints,
-loggers, signals, sizing for the machine, data parallelism over torchrun's processes."""
+algorithms (MA-POCA, MAPPO, IPPO), TerraShift's parts and hooks for it, schedules, a run's
+budget, checkpoints, loggers, signals, sizing for the machine, data parallelism over torchrun's
+processes."""
 
 from terrashift_rl.training.algorithms import (
     ALGORITHMS,
@@ -10,6 +11,7 @@ from terrashift_rl.training.algorithms import (
     MAPOCAConfig,
     MAPPOConfig,
 )
+from terrashift_rl.training.budget import iterate_until
 from terrashift_rl.training.checkpoint import load_checkpoint, save_checkpoint
 from terrashift_rl.training.schedules import LinearSchedule
 from terrashift_rl.training.settings import RecipeConfig, TrainConfig
@@ -24,7 +26,6 @@ from terrashift_rl.training.trainer import (
     MAPOCATrainer,
     OnPolicyTrainer,
     TrainerHook,
-    iterate_until,
 )
 
 __all__ = [
