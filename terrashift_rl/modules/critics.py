@@ -78,10 +78,67 @@ class _AttentionPool(nn.Module):
         self.mlp = _mlp(width, hidden_dim, 1, depth=depth, dropout=dropout)
 
     def _pool(self, tokens: Tensor, key_mask: Tensor | None) -> Tensor:
-        attended = self.attention(tokens, key_mask)
+        attendable = None
+        if key_mask is not None:
+            # a set without any key attends everywhere; the masked mean then drops it whole
+            attendable = (key_mask | ~key_mask.any(-1, keepdim=True)).unsqueeze(-1)
+        attended = self._attend(tokens, None, attendable)
+        block = self.attention
+        attended = block.output_norm(block.attention_dropout(attended) + tokens)
         # float32 out, also under bf16 autocast: returns and value losses need the precision
         return self.mlp(masked_mean(attended, key_mask)).float()
 
+    def _attend(
+        self, tokens: Tensor, set_queries: Tensor | None, attendable: Tensor | None
+    ) -> Tensor:
+        """The attention of the residual block for S sets of Q queries over T shared tokens.
+
+        ``tokens`` [..., T, width] are the block's input; ``set_queries`` [S, Q] indexes the
+        tokens that query in each set (None: one set, every token a query); ``attendable``
+        [..., T, S] tells which tokens are keys of which set (None: all of every set). Returns
+        the attention's output, [..., S * Q, width].
+
+        The same math as :class:`~terrashift_rl.modules.layers.MultiHeadAttention`, laid out
+        for sets of a few tokens on the CPU: the input norm and the projections run once per
+        token; the output projection is applied per head to the values before the weighted
+        sum, so that sum and projection are one batched product per sample over (key, head),
+        which also yields the output in the token-major layout that follows; and the softmax
+        runs over the keys as a leading dim (over a last dim of a few entries, PyTorch's CPU
+        softmax is many times slower).
+        """
+        block = self.attention
+        attention = block.attention
+        heads = attention.num_heads
+        normed = block.input_norm(tokens)
+        queries = attention.query_projection(normed).unflatten(-1, (heads, -1))
+        keys, values = (
+            attention.key_value_projection(normed).unflatten(-1, (2, heads, -1)).unbind(-3)
+        )
+        # [..., heads, key, query] -> [..., key, heads, query]
+        products = (keys.transpose(-2, -3) @ queries.movedim(-3, -1)).transpose(-2, -3)
+        if set_queries is None:
+            scores = products.contiguous().unsqueeze(-2)
+        else:
+            scores = products.index_select(-1, set_queries.flatten()).unflatten(
+                -1, set_queries.shape
+            )
+        # [..., key, heads, set, query]; -inf where the key is not in the set
+        if attendable is None:
+            scores = scores * attention.scale
+        else:
+            key_bias = torch.zeros(attendable.shape, dtype=scores.dtype, device=scores.device)
+            key_bias = key_bias.masked_fill_(~attendable, float("-inf"))[..., None, :, None]
+            scores = torch.add(key_bias, scores, alpha=attention.scale)
+        weights = scores.softmax(-4).to(values.dtype)
+        # [..., key, heads, width]: each head's values through its columns of the output
+        # projection, as one product with the block-diagonal of those columns
+        weight = attention.output_projection.weight
+        per_head = weight.view(weight.shape[0], heads, -1).permute(1, 2, 0)
+        projected = values.flatten(-2) @ torch.block_diag(*per_head)
+        attended = weights.flatten(-4, -3).flatten(-2).transpose(-1, -2) @ projected.unflatten(
+            -1, (heads, -1)
+        ).flatten(-3, -2)
+        return attended.add_(attention.output_projection.bias)
 
 class AttentionValue(_AttentionPool):
     """V(s) of a team: encoder per agent, residual self-attention, masked mean, MLP -> 1.
@@ -162,50 +219,25 @@ class AttentionBaseline(_AttentionPool):
     ) -> Tensor:
         """The residual self-attention over every agent's set, masked mean, MLP.
 
-        The K sets share all but K of their K² tokens, and everything in the block but the
-        attention weights and the output norm acts on one token at a time: the input norm and
-        the query, key and value projections run once on the 2K distinct tokens g(x_i) and
-        f(x_j, a_j), the sets' scores are gathered from their 2K x 2K products, and the value
-        of the set's own token enters as a correction of the shared values. Only the attended
-        tokens, [..., K, K, width], and the scores, [..., heads, K, K, K], are per set.
+        The K sets share all but K of their K² tokens: the attention runs on the 2K distinct
+        tokens g(x_i) and f(x_j, a_j), of which set i's keys are g(x_i) and the f(x_j, a_j)
+        of j != i, and its queries the same. Only the attention weights, [..., 2K, heads, K, K],
+        and what follows the weighted sum, [..., K, K, width], are per set.
         """
-        block = self.attention
-        attention = block.attention
         num_agents = own.shape[-2]
-        # g(x_1..K), then f(x_1..K, a_1..K); token t of agent i's set is number
-        # t + K (t's pair) where t != i and i (its own state) where t == i
-        normed = block.input_norm(torch.cat([own, others], -2))
-        index = torch.arange(num_agents, device=own.device) + num_agents * ~is_self
-        queries = attention.query_projection(normed).unflatten(-1, (attention.num_heads, -1))
-        keys, values = (
-            attention.key_value_projection(normed)
-            .unflatten(-1, (2, attention.num_heads, -1))
-            .unbind(-3)
-        )
-        # [..., heads, 2K, channels]
-        queries, keys, values = (x.transpose(-2, -3) for x in (queries, keys, values))
-        products = queries @ keys.transpose(-1, -2) * attention.scale
-        # [..., heads, key u, set i, query t]: the keys outermost, so that the softmax over
-        # them runs along contiguous rows of K² entries (over a last dim of K entries, PyTorch's
-        # CPU softmax is many times slower)
-        scores = products[..., index[None, :, :], index.T[:, :, None]]
-        if key_mask is not None:
-            attendable = key_mask.transpose(-1, -2)[..., None, :, :, None]
-            scores = scores.masked_fill(~attendable, float("-inf"))
-        weights = scores.softmax(-3).to(values.dtype)
-        own_values, other_values = values.split(num_agents, -2)
-        # [..., heads, channels, set i, query t]
-        attended = (other_values.transpose(-1, -2) @ weights.flatten(-2)).unflatten(
-            -1, (num_agents, num_agents)
-        )
-        # set i attends to its own g(x_i) where the shared values hold f(x_i, a_i)
-        own_weight = weights.diagonal(dim1=-3, dim2=-2).transpose(-1, -2)
-        own_correction = (own_values - other_values).transpose(-1, -2)
-        attended = attended + own_weight.unsqueeze(-3) * own_correction.unsqueeze(-1)
-        # [..., set i, query t, width]
-        attended = attention.output_projection(attended.flatten(-4, -3).movedim(-3, -1))
-        tokens = torch.where(is_self[..., None], own.unsqueeze(-2), others.unsqueeze(-3))
-        sets = block.output_norm(tokens + block.attention_dropout(attended))
+        tokens = torch.cat([own, others], -2)
+        # token t of agent i's set: number t + K (t's pair) where t != i, i (its own) where t == i
+        set_tokens = torch.arange(num_agents, device=own.device) + num_agents * ~is_self
+        # [..., token, set]: g(x_i) is a key of set i alone, f(x_j, a_j) of every set but j's
+        other_keys = ~is_self if key_mask is None else ~is_self & key_mask.transpose(-1, -2)
+        attendable = torch.cat([is_self.expand_as(other_keys), other_keys], -2)
+        attended = self._attend(tokens, set_tokens, attendable).unflatten(-2, is_self.shape)
+        block = self.attention
+        attended = block.attention_dropout(attended)
+        # + the sets' tokens: f(x_t, a_t) at [i, t], g(x_i) in place of f(x_i, a_i) at [i, i]
+        sets = attended + others.unsqueeze(-3)
+        sets.diagonal(0, -3, -2).add_((own - others).transpose(-1, -2))
+        sets = block.output_norm(sets)
         # float32 out, also under bf16 autocast, as the value's
         return self.mlp(masked_mean(sets, key_mask)).float()
 
