@@ -110,14 +110,20 @@ class _AttentionPool(nn.Module):
         attention = block.attention
         heads = attention.num_heads
         normed = block.input_norm(tokens)
-        queries = attention.query_projection(normed).unflatten(-1, (heads, -1))
-        keys, values = (
-            attention.key_value_projection(normed).unflatten(-1, (2, heads, -1)).unbind(-3)
+        queries = attention.query_projection(normed)
+        keys, values = attention.key_value_projection(normed).chunk(2, -1)
+        # each head's keys and values in its own channels, zeros elsewhere: [..., key * heads,
+        # width], so that one product per sample runs over every key and head at once
+        head_channels = torch.eye(heads, dtype=keys.dtype, device=keys.device).repeat_interleave(
+            keys.shape[-1] // heads, -1
         )
-        # [..., heads, key, query] -> [..., key, heads, query]
-        products = (keys.transpose(-2, -3) @ queries.movedim(-3, -1)).transpose(-2, -3)
+        spread_keys, spread_values = (
+            (x.unsqueeze(-2) * head_channels).flatten(-3, -2) for x in (keys, values)
+        )
+        # [..., key, heads, query]
+        products = (spread_keys @ queries.transpose(-1, -2)).unflatten(-2, (-1, heads))
         if set_queries is None:
-            scores = products.contiguous().unsqueeze(-2)
+            scores = products.unsqueeze(-2)
         else:
             scores = products.index_select(-1, set_queries.flatten()).unflatten(
                 -1, set_queries.shape
@@ -129,16 +135,10 @@ class _AttentionPool(nn.Module):
             key_bias = torch.zeros(attendable.shape, dtype=scores.dtype, device=scores.device)
             key_bias = key_bias.masked_fill_(~attendable, float("-inf"))[..., None, :, None]
             scores = torch.add(key_bias, scores, alpha=attention.scale)
-        weights = scores.softmax(-4).to(values.dtype)
-        # [..., key, heads, width]: each head's values through its columns of the output
-        # projection, as one product with the block-diagonal of those columns
-        weight = attention.output_projection.weight
-        per_head = weight.view(weight.shape[0], heads, -1).permute(1, 2, 0)
-        projected = values.flatten(-2) @ torch.block_diag(*per_head)
-        attended = weights.flatten(-4, -3).flatten(-2).transpose(-1, -2) @ projected.unflatten(
-            -1, (heads, -1)
-        ).flatten(-3, -2)
-        return attended.add_(attention.output_projection.bias)
+        weights = scores.softmax(-4).to(spread_values.dtype)
+        attended = weights.flatten(-4, -3).flatten(-2).transpose(-1, -2) @ spread_values
+        return attention.output_projection(attended)
+
 
 class AttentionValue(_AttentionPool):
     """V(s) of a team: encoder per agent, residual self-attention, masked mean, MLP -> 1.
