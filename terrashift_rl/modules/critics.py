@@ -37,6 +37,20 @@ __all__ = [
 ]
 
 
+_SPREAD_ROWS = 32
+"""Up to this many keys x heads, the attention spreads each head's keys and values over its
+own channels (zeros elsewhere) and runs one product per sample over all heads: on the CPU,
+batched products of tiny per-head matrices cost more than the zeros. Beyond, one per head."""
+
+
+def _scaled_scores(products: Tensor, scale: float, attendable: Tensor | None) -> Tensor:
+    """``scale * products``, -inf where ``attendable`` (broadcast) is False, in one pass."""
+    if attendable is None:
+        return products * scale
+    key_bias = torch.zeros(attendable.shape, dtype=products.dtype, device=products.device)
+    return torch.add(key_bias.masked_fill_(~attendable, float("-inf")), products, alpha=scale)
+
+
 def _mlp(
     in_dim: int, hidden_dim: int, out_dim: int, *, depth: int, dropout: float
 ) -> nn.Sequential:
@@ -78,65 +92,55 @@ class _AttentionPool(nn.Module):
         self.mlp = _mlp(width, hidden_dim, 1, depth=depth, dropout=dropout)
 
     def _pool(self, tokens: Tensor, key_mask: Tensor | None) -> Tensor:
-        attendable = None
-        if key_mask is not None:
-            # a set without any key attends everywhere; the masked mean then drops it whole
-            attendable = (key_mask | ~key_mask.any(-1, keepdim=True)).unsqueeze(-1)
-        attended = self._attend(tokens, None, attendable)
         block = self.attention
-        attended = block.output_norm(block.attention_dropout(attended) + tokens)
+        attended = block.output_norm(
+            tokens + block.attention_dropout(self._attend(tokens, key_mask))
+        )
         # float32 out, also under bf16 autocast: returns and value losses need the precision
         return self.mlp(masked_mean(attended, key_mask)).float()
 
-    def _attend(
-        self, tokens: Tensor, set_queries: Tensor | None, attendable: Tensor | None
-    ) -> Tensor:
-        """The attention of the residual block for S sets of Q queries over T shared tokens.
+    def _attend(self, tokens: Tensor, key_mask: Tensor | None) -> Tensor:
+        """The attention of the residual block over a set of tokens [..., T, width], keys
+        masked by ``key_mask`` [..., T]; [..., T, width] out.
 
-        ``tokens`` [..., T, width] are the block's input; ``set_queries`` [S, Q] indexes the
-        tokens that query in each set (None: one set, every token a query); ``attendable``
-        [..., T, S] tells which tokens are keys of which set (None: all of every set). Returns
-        the attention's output, [..., S * Q, width].
-
-        The same math as :class:`~terrashift_rl.modules.layers.MultiHeadAttention`, laid out
-        for sets of a few tokens on the CPU: the input norm and the projections run once per
-        token; the output projection is applied per head to the values before the weighted
-        sum, so that sum and projection are one batched product per sample over (key, head),
-        which also yields the output in the token-major layout that follows; and the softmax
-        runs over the keys as a leading dim (over a last dim of a few entries, PyTorch's CPU
-        softmax is many times slower).
+        :class:`~terrashift_rl.modules.layers.MultiHeadAttention`'s math (a set without keys
+        gives zeros there; here what its masked mean drops), laid out for sets of a few tokens
+        on the CPU: the softmax runs over the keys as a leading dim (over a last dim of a few
+        entries PyTorch's CPU softmax is many times slower), and for few keys x heads
+        (``_SPREAD_ROWS``) the scores and the weighted sum are one product per sample.
         """
-        block = self.attention
-        attention = block.attention
+        attention = self.attention.attention
         heads = attention.num_heads
-        normed = block.input_norm(tokens)
+        normed = self.attention.input_norm(tokens)
         queries = attention.query_projection(normed)
         keys, values = attention.key_value_projection(normed).chunk(2, -1)
-        # each head's keys and values in its own channels, zeros elsewhere: [..., key * heads,
-        # width], so that one product per sample runs over every key and head at once
-        head_channels = torch.eye(heads, dtype=keys.dtype, device=keys.device).repeat_interleave(
-            keys.shape[-1] // heads, -1
-        )
-        spread_keys, spread_values = (
-            (x.unsqueeze(-2) * head_channels).flatten(-3, -2) for x in (keys, values)
-        )
-        # [..., key, heads, query]
-        products = (spread_keys @ queries.transpose(-1, -2)).unflatten(-2, (-1, heads))
-        if set_queries is None:
-            scores = products.unsqueeze(-2)
-        else:
-            scores = products.index_select(-1, set_queries.flatten()).unflatten(
-                -1, set_queries.shape
+        spread = heads * tokens.shape[-2] <= _SPREAD_ROWS
+        if spread:
+            # each head's keys and values in its own channels, zeros elsewhere: [..., key *
+            # heads, width]
+            head_channels = torch.eye(heads, dtype=keys.dtype, device=keys.device)
+            head_channels = head_channels.repeat_interleave(keys.shape[-1] // heads, -1)
+            keys, values = (
+                (x.unsqueeze(-2) * head_channels).flatten(-3, -2) for x in (keys, values)
             )
-        # [..., key, heads, set, query]; -inf where the key is not in the set
-        if attendable is None:
-            scores = scores * attention.scale
+            products = (keys @ queries.mT).unflatten(-2, (-1, heads))
         else:
-            key_bias = torch.zeros(attendable.shape, dtype=scores.dtype, device=scores.device)
-            key_bias = key_bias.masked_fill_(~attendable, float("-inf"))[..., None, :, None]
-            scores = torch.add(key_bias, scores, alpha=attention.scale)
-        weights = scores.softmax(-4).to(spread_values.dtype)
-        attended = weights.flatten(-4, -3).flatten(-2).transpose(-1, -2) @ spread_values
+            queries, keys, values = (
+                x.unflatten(-1, (heads, -1)).transpose(-2, -3) for x in (queries, keys, values)
+            )
+            products = (keys @ queries.mT).transpose(-2, -3)
+        # [..., key, heads, query]
+        attendable = None
+        if key_mask is not None:
+            # a set without any key attends everywhere; the masked mean then drops it whole
+            attendable = (key_mask | ~key_mask.any(-1, keepdim=True))[..., None, None]
+        weights = _scaled_scores(products, attention.scale, attendable).softmax(-3)
+        weights = weights.to(values.dtype)
+        if spread:
+            attended = weights.flatten(-3, -2).mT @ values
+        else:
+            # [..., heads, query, channels] -> [..., query, width]
+            attended = (weights.movedim(-3, -1) @ values).transpose(-2, -3).flatten(-2)
         return attention.output_projection(attended)
 
 
@@ -219,23 +223,49 @@ class AttentionBaseline(_AttentionPool):
     ) -> Tensor:
         """The residual self-attention over every agent's set, masked mean, MLP.
 
-        The K sets share all but K of their K² tokens: the attention runs on the 2K distinct
-        tokens g(x_i) and f(x_j, a_j), of which set i's keys are g(x_i) and the f(x_j, a_j)
-        of j != i, and its queries the same. Only the attention weights, [..., 2K, heads, K, K],
-        and what follows the weighted sum, [..., K, K, width], are per set.
+        The K sets share all but K of their K² tokens, and everything in the block but the
+        attention weights and the output norm acts on one token at a time: the input norm and
+        the query, key and value projections run once on the 2K distinct tokens g(x_i) and
+        f(x_j, a_j), the sets' scores are gathered from their 2K x 2K products, and the value
+        of the set's own token enters as a correction of the shared values. Only the attended
+        tokens, [..., K, K, width], and the scores, [..., heads, K, K, K], are per set.
         """
-        num_agents = own.shape[-2]
-        tokens = torch.cat([own, others], -2)
-        # token t of agent i's set: number t + K (t's pair) where t != i, i (its own) where t == i
-        set_tokens = torch.arange(num_agents, device=own.device) + num_agents * ~is_self
-        # [..., token, set]: g(x_i) is a key of set i alone, f(x_j, a_j) of every set but j's
-        other_keys = ~is_self if key_mask is None else ~is_self & key_mask.transpose(-1, -2)
-        attendable = torch.cat([is_self.expand_as(other_keys), other_keys], -2)
-        attended = self._attend(tokens, set_tokens, attendable).unflatten(-2, is_self.shape)
         block = self.attention
-        attended = block.attention_dropout(attended)
+        attention = block.attention
+        num_agents = own.shape[-2]
+        # g(x_1..K), then f(x_1..K, a_1..K); token t of agent i's set is number
+        # t + K (t's pair) where t != i and i (its own state) where t == i
+        normed = block.input_norm(torch.cat([own, others], -2))
+        index = torch.arange(num_agents, device=own.device) + num_agents * ~is_self
+        queries = attention.query_projection(normed).unflatten(-1, (attention.num_heads, -1))
+        keys, values = (
+            attention.key_value_projection(normed)
+            .unflatten(-1, (2, attention.num_heads, -1))
+            .unbind(-3)
+        )
+        # [..., heads, 2K, channels]
+        queries, keys, values = (x.transpose(-2, -3) for x in (queries, keys, values))
+        products = queries @ keys.transpose(-1, -2)
+        # [..., heads, key u, set i, query t]: the keys outermost, so that the softmax over
+        # them runs along contiguous rows of K² entries (over a last dim of K entries, PyTorch's
+        # CPU softmax is many times slower)
+        scores = products[..., index[None, :, :], index.T[:, :, None]]
+        attendable = None if key_mask is None else key_mask.transpose(-1, -2)[..., None, :, :, None]
+        scores = _scaled_scores(scores, attention.scale, attendable)
+        weights = scores.softmax(-3).to(values.dtype)
+        own_values, other_values = values.split(num_agents, -2)
+        # [..., heads, channels, set i, query t]
+        attended = (other_values.transpose(-1, -2) @ weights.flatten(-2)).unflatten(
+            -1, (num_agents, num_agents)
+        )
+        # set i attends to its own g(x_i) where the shared values hold f(x_i, a_i)
+        own_weight = weights.diagonal(dim1=-3, dim2=-2).transpose(-1, -2)
+        own_correction = (own_values - other_values).transpose(-1, -2)
+        attended = attended + own_weight.unsqueeze(-3) * own_correction.unsqueeze(-1)
+        # [..., set i, query t, width]
+        attended = attention.output_projection(attended.flatten(-4, -3).movedim(-3, -1))
         # + the sets' tokens: f(x_t, a_t) at [i, t], g(x_i) in place of f(x_i, a_i) at [i, i]
-        sets = attended + others.unsqueeze(-3)
+        sets = block.attention_dropout(attended) + others.unsqueeze(-3)
         sets.diagonal(0, -3, -2).add_((own - others).transpose(-1, -2))
         sets = block.output_norm(sets)
         # float32 out, also under bf16 autocast, as the value's
