@@ -152,6 +152,44 @@ def test_baseline_matches_the_k_fold_sets_with_their_gradients(num_agents, batch
         torch.testing.assert_close(network_outputs[1][key], grad, atol=ATOL, rtol=1e-4, msg=key)
 
 
+def plain_value(network: AttentionValue, features, agent_mask=None):
+    """V as the block computes it: the residual self-attention of layers.py on the set."""
+    tokens = network.encoder(features)
+    return network.mlp(masked_mean(network.attention(tokens, agent_mask), agent_mask))
+
+
+# 4 heads: 3 and 8 agents spread keys and values over the heads' channels, 16 do not
+@pytest.mark.parametrize("num_agents", [1, 3, 8, 16])
+@pytest.mark.parametrize("batch", [(7,), (2, 3)])
+@pytest.mark.parametrize("with_mask", [False, True])
+def test_value_matches_the_plain_attention_with_its_gradients(num_agents, batch, with_mask):
+    torch.manual_seed(0)
+    network = AttentionValue(
+        nn.Sequential(nn.Linear(5, 16), nn.GELU(), nn.Linear(16, 16)),
+        width=16,
+        num_heads=4,
+        hidden_dim=24,
+    )
+    generator = torch.Generator().manual_seed(1)
+    features = torch.randn(*batch, num_agents, 5, generator=generator)
+    mask = None
+    if with_mask:
+        mask = torch.rand(*batch, num_agents, generator=generator) < 0.7
+        mask.view(-1, num_agents)[0] = False  # a team with nobody present
+    outputs = {}
+    for name, forward in (("reference", plain_value), ("network", AttentionValue.forward)):
+        network.zero_grad()
+        value = forward(network, features, mask)
+        (value * torch.linspace(-1, 1, value.numel()).view_as(value)).sum().backward()
+        grads = {key: p.grad.clone() for key, p in network.named_parameters()}
+        outputs[name] = (value.detach(), grads)
+    reference, network_outputs = outputs["reference"], outputs["network"]
+    assert torch.isfinite(network_outputs[0]).all()
+    torch.testing.assert_close(network_outputs[0], reference[0], atol=ATOL, rtol=1e-4)
+    for key, grad in reference[1].items():
+        torch.testing.assert_close(network_outputs[1][key], grad, atol=ATOL, rtol=1e-4, msg=key)
+
+
 # --- the generic critics: flat per-agent observations, plain sizes ----------------------------
 
 
