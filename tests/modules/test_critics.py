@@ -108,6 +108,23 @@ def test_batched_baseline_equals_one_set_per_agent(baseline_head):
         torch.testing.assert_close(batched[:, agent], expected, atol=ATOL, rtol=1e-4)
 
 
+def assert_same_outputs_and_gradients(network, reference, forward, *inputs) -> torch.Tensor:
+    """``forward(network, *inputs)`` gives ``reference``'s outputs and parameter gradients (of
+    a weighted sum of the outputs); returns the outputs."""
+    outputs = []
+    for function in (reference, forward):
+        network.zero_grad()
+        output = function(network, *inputs)
+        (output * torch.linspace(-1, 1, output.numel()).view_as(output)).sum().backward()
+        grads = {key: p.grad.clone() for key, p in network.named_parameters()}
+        outputs.append((output.detach(), grads))
+    (expected, expected_grads), (output, grads) = outputs
+    torch.testing.assert_close(output, expected, atol=ATOL, rtol=1e-4)
+    for key, grad in expected_grads.items():
+        torch.testing.assert_close(grads[key], grad, atol=ATOL, rtol=1e-4, msg=key)
+    return output
+
+
 def k_fold_baseline(network: AttentionBaseline, features, action, agent_mask=None):
     """b_i as the network first computed them: every agent's set materialised as a
     [..., K, K, width] tensor of tokens and passed through the residual self-attention whole."""
@@ -139,17 +156,9 @@ def test_baseline_matches_the_k_fold_sets_with_their_gradients(num_agents, batch
     mask = None
     if with_mask:
         mask = torch.rand(*batch, num_agents, generator=generator) < 0.7
-    outputs = {}
-    for name, forward in (("reference", k_fold_baseline), ("network", AttentionBaseline.forward)):
-        network.zero_grad()
-        baseline = forward(network, features, action, mask)
-        (baseline * torch.linspace(-1, 1, baseline.numel()).view_as(baseline)).sum().backward()
-        grads = {key: p.grad.clone() for key, p in network.named_parameters()}
-        outputs[name] = (baseline.detach(), grads)
-    reference, network_outputs = outputs["reference"], outputs["network"]
-    torch.testing.assert_close(network_outputs[0], reference[0], atol=ATOL, rtol=1e-4)
-    for key, grad in reference[1].items():
-        torch.testing.assert_close(network_outputs[1][key], grad, atol=ATOL, rtol=1e-4, msg=key)
+    assert_same_outputs_and_gradients(
+        network, k_fold_baseline, AttentionBaseline.forward, features, action, mask
+    )
 
 
 def plain_value(network: AttentionValue, features, agent_mask=None):
@@ -176,18 +185,10 @@ def test_value_matches_the_plain_attention_with_its_gradients(num_agents, batch,
     if with_mask:
         mask = torch.rand(*batch, num_agents, generator=generator) < 0.7
         mask.view(-1, num_agents)[0] = False  # a team with nobody present
-    outputs = {}
-    for name, forward in (("reference", plain_value), ("network", AttentionValue.forward)):
-        network.zero_grad()
-        value = forward(network, features, mask)
-        (value * torch.linspace(-1, 1, value.numel()).view_as(value)).sum().backward()
-        grads = {key: p.grad.clone() for key, p in network.named_parameters()}
-        outputs[name] = (value.detach(), grads)
-    reference, network_outputs = outputs["reference"], outputs["network"]
-    assert torch.isfinite(network_outputs[0]).all()
-    torch.testing.assert_close(network_outputs[0], reference[0], atol=ATOL, rtol=1e-4)
-    for key, grad in reference[1].items():
-        torch.testing.assert_close(network_outputs[1][key], grad, atol=ATOL, rtol=1e-4, msg=key)
+    value = assert_same_outputs_and_gradients(
+        network, plain_value, AttentionValue.forward, features, mask
+    )
+    assert torch.isfinite(value).all()
 
 
 # --- the generic critics: flat per-agent observations, plain sizes ----------------------------
