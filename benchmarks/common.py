@@ -14,6 +14,7 @@ from collections.abc import Iterable
 from datetime import date
 from pathlib import Path
 
+import numpy as np
 import torch
 from omegaconf import OmegaConf
 
@@ -75,6 +76,18 @@ def write_results(path: Path, payload: dict) -> None:
     partial.replace(path)
 
 
+def save_palette_png(figure, out: Path, colors: int = 256) -> None:
+    """Writes a drawn matplotlib ``figure`` to ``out`` as a PNG of at most ``colors`` colours
+    (a third of a full-colour file's bytes for line plots)."""
+    from PIL import Image  # matplotlib's own dependency
+
+    figure.canvas.draw()
+    pixels = np.asarray(figure.canvas.buffer_rgba())[..., :3]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(pixels).quantize(colors).save(out, optimize=True)
+    print(f"wrote {out} ({out.stat().st_size / 1e3:.0f} kB)")
+
+
 def read_series(run: Path, metric: str) -> tuple[list[float], list[float]]:
     """Steps and values of one metric of a run: a torchrl CSVLogger ``scalars`` folder
     (``<metric>.csv`` of ``step,value`` rows) or a run summary written by
@@ -133,6 +146,7 @@ EVALUATION_SUFFIXES = (
     "best_evaluation",
     "best_training_mode_evaluation",
     "snapshots_evaluation",
+    "pretraining_scene_evaluation",  # a larger scene's policy back on the pretraining scene
 )
 """How the evaluation files of a run's log folder are named: ``<folder>_<suffix>.json``."""
 

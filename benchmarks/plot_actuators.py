@@ -18,14 +18,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import benchmark_parser
+from common import benchmark_parser, save_palette_png
 from matplotlib import colormaps
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import ListedColormap
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
-from PIL import Image
 from torchrl.envs.utils import step_mdp
 
 from terrashift_rl.envs import TerraShiftEnv
@@ -120,11 +119,7 @@ def main() -> None:
         "(\N{MULTIPLICATION SIGN})",
         fontsize=10,
     )
-    figure.canvas.draw()
-    pixels = np.asarray(figure.canvas.buffer_rgba())[..., :3]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(pixels).quantize(args.colors).save(args.out, optimize=True)
-    print(f"wrote {args.out} ({args.out.stat().st_size / 1e3:.0f} kB)")
+    save_palette_png(figure, args.out, args.colors)
 
 
 if __name__ == "__main__":

@@ -13,11 +13,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
 import torch
+from common import save_palette_png
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from PIL import Image
 
 from terrashift_rl.envs.render import Renderer
 from terrashift_rl.sim import Simulator, TerraShiftConfig
@@ -61,11 +60,7 @@ def main() -> None:
         camera_axes.set_xlabel("x [m]", fontsize=8)
         camera_axes.set_ylabel("y [m]", fontsize=8)
         camera_axes.tick_params(labelsize=7)
-    figure.canvas.draw()
-    pixels = np.asarray(figure.canvas.buffer_rgba())[..., :3]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(pixels).quantize(256).save(args.out, optimize=True)
-    print(f"wrote {args.out}")
+    save_palette_png(figure, args.out)
 
 
 if __name__ == "__main__":

@@ -6,13 +6,17 @@
 Each argument is a run summary (``compact_logs.py``'s JSON) or a ``scalars`` folder written by
 torchrl's CSVLogger (one ``<metric>.csv`` of ``step,value`` rows per metric). Draws one panel
 per metric against env-steps (by default reward per decision, success rate and throughput),
-with an optional reference line in one panel (``--reference-metric``, the reward by default).
+with an optional reference line in one panel (``--reference-metric``, the reward by default);
+``<metric>@minutes`` draws a metric against the run's minutes instead (its ``run_seconds``,
+evaluations included).
 A summary is labelled by its name, a recipe's own folder
 (``<run dir>/logs/<run name>/scalars``) by its run folder and the overrides Hydra recorded
 there, any other folder by its name.
 
     python benchmarks/plot_training.py <runs> --out curves.png \
         --metrics reward_per_decision out_of_bounds_per_episode entropy kl_approx
+    python benchmarks/plot_training.py <runs> --out curves.png \
+        --metrics eval_goal_fraction eval_goal_fraction@minutes curriculum_stage
 
 A run continued in parts (``run.resume``, ``train_seeds.py --resume``) is drawn as one line
 when its parts' summaries are joined with ``+``: ``<name>_seed0.json+<name>_seed0_part1.json``.
@@ -22,7 +26,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from common import benchmark_parser, joined_series, run_label, run_parts
+import numpy as np
+from common import benchmark_parser, joined_series, run_label, run_parts, save_palette_png
 from matplotlib import colormaps
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
@@ -43,10 +48,26 @@ TITLES = {
     "eval_success_rate": "success rate (evaluation mode)",
     "eval_out_of_bounds_per_episode": "spheres lost per episode (evaluation mode)",
     "eval_mean_episode_length": "episode length (evaluation mode)",
+    "curriculum_stage": "curriculum stage",
+    "curriculum_eval_goal_fraction": "goal fraction at the current stage",
     **{f"concentration_{name}": f"median Beta α + β, {name}" for name in ACTION_NAMES},
     **{f"action_median_{name}": f"median action, {name}" for name in ACTION_NAMES},
 }
 DEFAULT_METRICS = ("reward_per_decision", "success_rate", "env_steps_per_s")
+
+
+def panel_curve(run: str | Path, panel: str) -> tuple[np.ndarray, list[float]]:
+    """One run's curve in a panel: ``<metric>`` against env-steps (millions), or
+    ``<metric>@minutes`` against the run's minutes, its ``run_seconds`` interpolated at the
+    metric's env-steps; no values where the run lacks either series."""
+    metric, _, against = panel.partition("@")
+    steps, values = joined_series(run, metric)
+    if not against:
+        return np.array(steps) / 1e6, values
+    clock_steps, seconds = joined_series(run, "run_seconds")
+    if not clock_steps:
+        return np.array([]), []
+    return np.interp(steps, clock_steps, seconds) / 60, values
 
 
 def main() -> None:
@@ -72,35 +93,41 @@ def main() -> None:
     args = parser.parse_args()
     # a legend beside the panels (more than ten runs) needs a line per run
     height = 3.6 if len(args.runs) <= 10 else max(3.6, 0.25 * len(args.runs))
-    figure = Figure(figsize=(4.4 * len(args.metrics), height), layout="constrained")
+    figure = Figure(figsize=(4.4 * len(args.metrics), height), dpi=110, layout="constrained")
     FigureCanvasAgg(figure)
     axes = figure.subplots(1, len(args.metrics), squeeze=False)[0]
-    for ax, metric in zip(axes, args.metrics, strict=True):
-        if len(args.runs) > 10:  # past the default cycle's ten colours
-            ax.set_prop_cycle(color=colormaps["tab20"].colors)
-        for run in args.runs:
-            steps, values = joined_series(run, metric)
-            if not steps:
-                parser.error(f"{run} has no {metric}")
+    # a colour per run, the same in every panel (past ten runs, tab20's twenty)
+    colours = colormaps["tab20" if len(args.runs) > 10 else "tab10"].colors
+    for ax, panel in zip(axes, args.metrics, strict=True):
+        metric, _, against = panel.partition("@")
+        if against not in ("", "minutes"):
+            parser.error(f"--metrics {panel}: only @minutes may follow a metric")
+        drawn = 0
+        for index, run in enumerate(args.runs):
+            x, values = panel_curve(run, panel)
+            if not values:  # a run without the panel's series is left out of it
+                continue
+            drawn += 1
             ax.plot(
-                [s / 1e6 for s in steps],
+                x,
                 values,
-                marker="." if len(steps) < 10 else None,
+                color=colours[index % len(colours)],
+                marker="." if len(values) < 10 else None,
                 label=run_label(run_parts(run)[0]),
             )
+        if not drawn:
+            parser.error(f"no run has {metric}" + (" and run_seconds" if against else ""))
         if metric == args.reference_metric and args.reference is not None:
             ax.axhline(args.reference, linestyle="--", color="grey", label=args.reference_label)
         ax.set_title(TITLES.get(metric, metric))
-        ax.set_xlabel("env-steps (millions)")
+        ax.set_xlabel("minutes of the run" if against else "env-steps (millions)")
         ax.grid(alpha=0.3)
     if len(args.runs) > 10:  # a long legend goes beside the panels, not over the first
         handles, labels = axes[0].get_legend_handles_labels()
         figure.legend(handles, labels, loc="outside right upper", fontsize=8)
     else:
         axes[0].legend(fontsize=8)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(args.out, dpi=110)
-    print(f"wrote {args.out}")
+    save_palette_png(figure, args.out)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,9 @@ last periodic evaluation the run logged, ``eval_*``), the policy's mean action f
 samples in parentheses where evaluated (``eval_sampled_*``, logged with
 ``run.eval_sampled=true``), with the env-steps and the training reward per decision over the
 last 8 iterations. ``--baselines`` adds the random, zero and heuristic rows of an
-``evaluate_baselines`` file, or those of a ``recipes/evaluate.py`` report (its scene's).
+``evaluate_baselines`` file, or those of a ``recipes/evaluate.py`` report (its scene's), also
+the one a run summary holds.
+``--evaluation pretraining_scene_evaluation`` reads another of a run's evaluation files.
 ``--env-steps N`` compares runs of different lengths at one budget: each row then reads the
 periodic evaluation logged at N env-steps, and the training reward over the last 8 points
 logged up to N (none for a finetune's zero-shot score at 0).
@@ -26,6 +28,7 @@ import statistics
 from pathlib import Path
 
 from common import (
+    EVALUATION_SUFFIXES,
     benchmark_parser,
     joined_series,
     read_evaluations,
@@ -50,11 +53,13 @@ def spread(values: list[float], form: str) -> str:
     return f"{form.format(statistics.mean(values))} ± {deviation}"
 
 
-def scores(run: str | Path, at: int | None = None) -> dict[str, dict[str, float]]:
+def scores(
+    run: str | Path, at: int | None = None, file: str = "evaluation"
+) -> dict[str, dict[str, float]]:
     """Evaluation-mode metrics of a run per policy kind (``deterministic``, ``stochastic``):
-    its evaluation file's, else its last periodic evaluation, or the one at ``at`` env-steps
-    (``eval_*``, and ``eval_sampled_*`` where the run scored its samples too)."""
-    evaluation = read_evaluations(run_parts(run)[-1]).get("evaluation")
+    its evaluation ``file``'s, else its last periodic evaluation, or the one at ``at``
+    env-steps (``eval_*``, and ``eval_sampled_*`` where the run scored its samples too)."""
+    evaluation = read_evaluations(run_parts(run)[-1]).get(file)
     if evaluation is not None and at is None:
         return {kind: evaluation[kind] for kind in ("deterministic", "stochastic")}
     result = {}
@@ -78,8 +83,10 @@ def scores(run: str | Path, at: int | None = None) -> dict[str, dict[str, float]
     return result
 
 
-def row(label: str, runs: list[str | Path], at: int | None = None) -> list[str]:
-    per_run = [scores(run, at) for run in runs]
+def row(
+    label: str, runs: list[str | Path], at: int | None = None, file: str = "evaluation"
+) -> list[str]:
+    per_run = [scores(run, at, file) for run in runs]
     rewards = [joined_series(run, "reward_per_decision") for run in runs]
     cells = [label, str(len(runs))]
     end = statistics.mean(steps[-1] for steps, _ in rewards) if at is None else at
@@ -104,9 +111,15 @@ def main() -> None:
         "recipes", nargs="+", help="label=summary,summary,... (a run's parts joined by +)"
     )
     parser.add_argument(
-        "--baselines", type=Path, help="an evaluate_baselines or evaluate.py JSON file"
+        "--baselines", type=Path, help="an evaluate_baselines, evaluate.py or run summary JSON"
     )
     parser.add_argument("--env-steps", type=int, help="score every run at this many env-steps")
+    parser.add_argument(
+        "--evaluation",
+        choices=EVALUATION_SUFFIXES,
+        default="evaluation",
+        help="which evaluation file of each run to read",
+    )
     args = parser.parse_args()
     header = ["recipe", "seeds", "env-steps", *(name for name, _ in METRICS)]
     header.append("training reward / decision, last 8")
@@ -114,9 +127,11 @@ def main() -> None:
     for recipe in args.recipes:
         label, _, paths = recipe.rpartition("=")  # labels may hold overrides
         runs = paths.split(",")
-        print(table_row(row(label, runs, args.env_steps)))
+        print(table_row(row(label, runs, args.env_steps, args.evaluation)))
     if args.baselines:
         saved = json.loads(args.baselines.read_text())  # evaluate_baselines' or evaluate.py's
+        if "evaluations" in saved:  # a run summary: its evaluate.py report's
+            saved = saved["evaluations"]["evaluation"]
         results = saved["results"] if "results" in saved else saved["baselines"]
         for name, metrics in results.items():
             cells = [f"{name} (baseline)", "", ""]

@@ -1,5 +1,6 @@
 """results_table.py: a run's periodic evaluations, of its mean action and of its samples."""
 
+import json
 import sys
 from pathlib import Path
 
@@ -65,3 +66,14 @@ def test_a_run_in_parts_is_scored_at_any_budget_of_its_parts(tmp_path):
     cells = row("recipe", [joined], at=300)
     assert cells[2] == "0.0 M" and cells[3] == "0.300"
     assert cells[-1] == "+0.350"  # the mean of the six rewards logged up to 300
+
+
+def test_the_evaluation_file_read_is_chosen_by_its_suffix(tmp_path):
+    run = write_run(tmp_path / "curriculum", sampled=False)
+    for suffix, goals in (("evaluation", 0.9), ("pretraining_scene_evaluation", 0.7)):
+        scored = {name: goals for name, _ in METRICS}
+        report = {"deterministic": scored, "stochastic": scored}
+        (tmp_path / f"curriculum_{suffix}.json").write_text(json.dumps(report))
+    assert row("recipe", [run])[3] == "0.900 (0.900)"
+    assert row("recipe", [run], file="pretraining_scene_evaluation")[3] == "0.700 (0.700)"
+    assert row("recipe", [run], at=200)[3] == "0.200"  # a budget reads the periodic ones
