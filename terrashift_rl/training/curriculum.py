@@ -328,7 +328,7 @@ class CurriculumHook(TrainerHook):
         if self.make_evaluation_env is not None:
             scores = self._evaluate(trainer)
             passed = curriculum.passes(scores["eval_goal_fraction"])
-        if distributed.any_process(passed):
+        if distributed.any_process(passed, "the next curriculum stage"):
             curriculum.advance(env_steps=trainer.env_steps)
             curriculum.seat(self.env, seed=self.seed)
             trainer.restart_episodes()

@@ -268,15 +268,15 @@ def broadcast_from_main(modules: Iterable[nn.Module]) -> None:
         dist.barrier()
 
 
-def any_process(flag: bool) -> bool:
-    """Whether ``flag`` is true on any process: a decision every rank then takes alike, such as
-    stopping, however its own signal or clock fell (``flag`` itself in a single process)."""
+def any_process(flag: bool, decision: str = "stopping") -> bool:
+    """Whether ``flag`` is true on any process: a ``decision`` every rank then takes alike, such
+    as stopping, however its own signal or clock fell (``flag`` itself in a single process)."""
     if world_size() == 1:
         return flag
     nccl = dist.get_backend() == "nccl"  # which only reduces tensors on a GPU
     device = torch.device("cuda", torch.cuda.current_device()) if nccl else torch.device("cpu")
     value = torch.tensor(float(flag), device=device)
-    with watch("the vote on stopping"):
+    with watch(f"the vote on {decision}"):
         dist.all_reduce(value, op=dist.ReduceOp.MAX)
         return bool(value.item())
 
