@@ -11,6 +11,7 @@ from torchrl.envs import Compose, InitTracker, TransformedEnv
 
 from terrashift_rl.envs import TerraShiftEnv
 from terrashift_rl.modules import keys, make_terrashift_networks
+from terrashift_rl.sim.camera import camera_levels
 
 SMOKE_SCENE = {
     "grid_size": 8,
@@ -88,3 +89,23 @@ def test_actor_acts_on_the_environment_from_pixels(small_config):
     assert "objects" not in rollout
     actions = rollout[keys.ACTION]
     assert actions.shape == (2, 3, 4, 6) and actions.abs().max() <= 1.0
+
+
+def test_a_spheres_pixels_reach_the_critics(small_config):
+    """The critics share the trunk and see the spheres only through it: the value and every
+    baseline have a gradient at the pixels of a rendered sphere."""
+    networks = pixel_networks(small_config, camera=True, objects=False)
+    env = TerraShiftEnv(
+        num_envs=2, seed=0, camera_resolution=24, observe_objects=False, **SMOKE_SCENE
+    )
+    data = env.reset()
+    data["is_init"] = torch.ones(2, 1, dtype=torch.bool)
+    data[keys.ACTION] = torch.zeros(2, 4, 6)
+    camera = data["camera"].requires_grad_(True)
+    sphere_levels = torch.tensor([sphere for _, sphere in camera_levels(2)])
+    spheres = torch.isclose(camera.detach()[..., None], sphere_levels).any(-1)
+    assert spheres.any()
+    networks.baseline_head(networks.value_head(networks.trunk(data)))
+    for key in (keys.STATE_VALUE, keys.BASELINE):
+        (gradient,) = torch.autograd.grad(data[key].sum(), camera, retain_graph=True)
+        assert gradient[spheres].abs().sum() > 0, key
