@@ -17,7 +17,9 @@ held-out frames by R^2 (1: exact, 0: no better than the mean):
 - ``cnn``: a plain CNN on the same images (three strided convolutions, flattened, an MLP with
   each agent's observation).
 
-Prints a table and writes JSON after each network.
+Each network's cost is timed too: milliseconds per env-step of a forward pass, and of a forward
+and backward pass, on 256 held-out frames (median of 5). Prints a table and writes JSON after
+each network.
 
     python benchmarks/pixel_probe.py --out benchmarks/results/pixel_probe_cpu.json
     python benchmarks/pixel_probe.py --networks pixels --camera-resolution 32 --out /tmp/p32.json
@@ -27,6 +29,7 @@ Prints a table and writes JSON after each network.
 from __future__ import annotations
 
 import dataclasses
+import statistics
 import time
 from pathlib import Path
 
@@ -161,6 +164,28 @@ def r_squared(prediction: Tensor, target: Tensor, valid: Tensor) -> list[float]:
     return (1 - residual / variance).tolist()
 
 
+def milliseconds_per_env_step(
+    network: nn.Module, batch: dict[str, Tensor], *, repeats: int = 5
+) -> tuple[float, float]:
+    """Median milliseconds per env-step of a forward pass and of a forward and backward pass
+    on ``batch``."""
+    frames = len(batch["targets"])
+
+    def forward_backward() -> None:
+        network(batch).sum().backward()
+
+    medians = []
+    for run in (torch.no_grad()(lambda: network(batch)), forward_backward):
+        times = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            run()
+            times.append(time.perf_counter() - start)
+        medians.append(1e3 * statistics.median(times) / frames)
+    network.zero_grad()
+    return medians[0], medians[1]
+
+
 def main() -> None:
     parser = benchmark_parser(__doc__)
     parser.add_argument("--networks", nargs="+", choices=NETWORKS, default=list(NETWORKS))
@@ -204,7 +229,7 @@ def main() -> None:
     }
     # every target counts alike in the loss (a sphere is mostly at rest: its velocity is small)
     scale = train["targets"][train["valid"]].std(0)
-    print(table_header(["network", *TARGETS, "train loss", "s"]))
+    print(table_header(["network", *TARGETS, "train loss", "s", "fwd ms", "fwd+bwd ms"]))
     for name in args.networks:
         torch.manual_seed(args.seed)
         network = make_network(
@@ -232,9 +257,19 @@ def main() -> None:
                 ]
             )
         scores = r_squared(prediction, test["targets"], test["valid"])
+        costs = milliseconds_per_env_step(
+            network, {key: value[:256] for key, value in test.items()}
+        )
         final_loss = sum(losses[-50:]) / len(losses[-50:])
-        payload["networks"][name] = {"r2": scores, "train_loss": final_loss, "seconds": seconds}
+        payload["networks"][name] = {
+            "r2": scores,
+            "train_loss": final_loss,
+            "seconds": seconds,
+            "forward_ms_per_env_step": costs[0],
+            "forward_backward_ms_per_env_step": costs[1],
+        }
         cells = [name, *(f"{s:.3f}" for s in scores), f"{final_loss:.4f}", f"{seconds:.0f}"]
+        cells += [f"{cost:.3f}" for cost in costs]
         print(table_row(cells))
         write_results(args.out, payload)
 
