@@ -227,8 +227,10 @@ def main() -> None:
         "targets": list(TARGETS),
         "networks": {},
     }
-    # every target counts alike in the loss (a sphere is mostly at rest: its velocity is small)
+    # every target counts alike in the loss (a sphere is mostly at rest: its velocity is
+    # small); a target constant over the frames (no sphere moved) keeps its own units
     scale = train["targets"][train["valid"]].std(0)
+    scale = torch.where(scale > 0, scale, 1.0)
     print(table_header(["network", *TARGETS, "train loss", "s", "fwd ms", "fwd+bwd ms"]))
     for name in args.networks:
         torch.manual_seed(args.seed)
