@@ -102,12 +102,10 @@ def main() -> None:
         metric, _, against = panel.partition("@")
         if against not in ("", "minutes"):
             parser.error(f"--metrics {panel}: only @minutes may follow a metric")
-        drawn = 0
         for index, run in enumerate(args.runs):
             x, values = panel_curve(run, panel)
             if not values:  # a run without the panel's series is left out of it
                 continue
-            drawn += 1
             ax.plot(
                 x,
                 values,
@@ -115,7 +113,7 @@ def main() -> None:
                 marker="." if len(values) < 10 else None,
                 label=run_label(run_parts(run)[0]),
             )
-        if not drawn:
+        if not ax.lines:
             parser.error(f"no run has {metric}" + (" and run_seconds" if against else ""))
         if metric == args.reference_metric and args.reference is not None:
             ax.axhline(args.reference, linestyle="--", color="grey", label=args.reference_label)
