@@ -10,7 +10,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
-from terrashift_rl.envs.terrashift import GROUP, TerraShiftEnv, set_specs
+from terrashift_rl.envs.terrashift import GROUP, PRIVILEGED, TerraShiftEnv, set_specs
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.sim.types import AGENT_FEATURES, OBJECT_FEATURES
 
@@ -34,13 +34,14 @@ class MixedSceneEnv(EnvBase):
 
     Every scene keeps the first's observations: its heightmap resolution, its camera
     (``camera_resolution``, the same R x R frame whatever the grid) and whether it observes
-    the objects. The camera draws the colour pairs at grey levels spread over the scene's
+    the objects or hands them to critics alone (``privileged_objects``). The camera draws the colour pairs at grey levels spread over the scene's
     own number of goals (:func:`~terrashift_rl.sim.camera.camera_levels`), so scenes with
     different numbers of goals draw a pair at different levels.
 
     Args:
         scenes: the scenes, each a :class:`~terrashift_rl.sim.TerraShiftConfig`, all with the
-            first's heightmap resolution, camera resolution and ``observe_objects``.
+            first's heightmap resolution, camera resolution, ``observe_objects`` and
+            ``privileged_objects``.
         num_envs: environments of each scene, each >= 1.
 
     Keyword Args:
@@ -78,6 +79,7 @@ class MixedSceneEnv(EnvBase):
         self.heightmap_resolution = scenes[0].heightmap_resolution
         self.camera_resolution = scenes[0].camera_resolution
         self.observe_objects = scenes[0].observe_objects
+        self.privileged_objects = scenes[0].privileged_objects
         super().__init__(device=device, batch_size=torch.Size([sum(num_envs)]))
         self.set_scenes(scenes, num_envs, seed=seed)
         set_specs(
@@ -86,6 +88,7 @@ class MixedSceneEnv(EnvBase):
             num_objects=self.num_objects,
             heightmap_resolution=self.heightmap_resolution,
             observe_objects=self.observe_objects,
+            privileged_objects=self.privileged_objects,
             camera_resolution=self.camera_resolution,
         )
 
@@ -120,13 +123,11 @@ class MixedSceneEnv(EnvBase):
                     f"{self.num_agents} agents, {self.num_objects} object slots and "
                     f"{self.heightmap_resolution}-ray heightmap"
                 )
-            observed = (scene.camera_resolution, scene.observe_objects)
-            if observed != (self.camera_resolution, self.observe_objects):
+            names = ("camera_resolution", "observe_objects", "privileged_objects")
+            if any(getattr(scene, name) != getattr(self, name) for name in names):
                 raise ValueError(
-                    f"a scene with camera_resolution={scene.camera_resolution} and "
-                    f"observe_objects={scene.observe_objects} does not observe as this env, "
-                    f"camera_resolution={self.camera_resolution} and "
-                    f"observe_objects={self.observe_objects}: every scene needs the same"
+                    f"a scene with {_settings(scene, names)} does not observe as this env, "
+                    f"{_settings(self, names)}: every scene needs the same"
                 )
         self.envs = [
             TerraShiftEnv(scene, num_envs=n, device=self.device, seed=seed + i)
@@ -215,11 +216,18 @@ class MixedSceneEnv(EnvBase):
                     padded[key] = team[:, :1].expand(n, extra_agents, *team.shape[2:])
             extra = TensorDict(padded, batch_size=(n, extra_agents), device=out.device)
             out.set(GROUP, torch.cat([agents, extra], dim=1))
-        objects = out.get("objects", None)  # absent where the scenes do not observe them
+        # the object sequence, observed or privileged, or neither
+        root = () if self.observe_objects else (PRIVILEGED,)
+        objects = out.get((*root, "objects"), None)
         extra_objects = 0 if objects is None else self.num_objects - objects.shape[1]
         if extra_objects:
-            mask = out.get("objects_mask")
+            mask = out.get((*root, "objects_mask"))
             padding = objects.new_zeros(n, extra_objects, OBJECT_FEATURES)
-            out.set("objects", torch.cat([objects, padding], 1))
-            out.set("objects_mask", torch.cat([mask, mask.new_zeros(n, extra_objects)], 1))
+            out.set((*root, "objects"), torch.cat([objects, padding], 1))
+            out.set((*root, "objects_mask"), torch.cat([mask, mask.new_zeros(n, extra_objects)], 1))
         return out
+
+
+def _settings(owner: object, names: tuple[str, ...]) -> str:
+    """``name=value`` of each of ``names`` on ``owner``, joined by commas."""
+    return ", ".join(f"{name}={getattr(owner, name)}" for name in names)

@@ -14,6 +14,9 @@ from terrashift_rl.sim.types import ACTION_DIM, AGENT_FEATURES, OBJECT_FEATURES
 
 GROUP = "agents"
 """Name of the agent group in every nested key."""
+PRIVILEGED = "privileged"
+"""Root of the keys that no policy reads: the object sequence for critics
+(``TerraShiftConfig.privileged_objects``)."""
 EVENT_KEYS = ("episode_goals", "episode_out_of_bounds")
 """Per-environment event counts since the last reset, shape [num_envs, 1]."""
 
@@ -33,6 +36,8 @@ class TerraShiftEnv(EnvBase):
     ``"objects"``                       [N, M, 9]            sphere and goal positions, velocity
     ``"objects_mask"``                  [N, M] bool          True where the slot holds a sphere
     ``"camera"``                        [N, 1, C, C]         overhead greyscale image in [0, 1]
+    ``("privileged", "objects")``       [N, M, 9]            ``"objects"``, for critics alone
+    ``("privileged", "objects_mask")``  [N, M] bool          ``"objects_mask"``, for critics alone
     ``"episode_goals"``                 [N, 1] int64         goals reached since the reset
     ``"episode_out_of_bounds"``         [N, 1] int64         spheres lost since the reset
     ``"episode_surface_work"``          [N, 1]               the surface's work on the spheres [J]
@@ -43,7 +48,9 @@ class TerraShiftEnv(EnvBase):
 
     ``"camera"`` is there only with ``camera_resolution`` C > 0 (``sim/camera.py`` gives its
     grey levels); ``"objects"`` and ``"objects_mask"`` only with ``observe_objects`` (without
-    them no observation but the two images tells where a sphere or a goal is).
+    them no observation but the two images tells where a sphere or a goal is). With
+    ``privileged_objects`` (and without ``observe_objects``) the same two tensors come under
+    ``"privileged"`` instead: what critics may read in training, and a policy never.
 
     ``truncated`` marks the step limit; ``terminated`` is only raised where nothing respawns
     (evaluation mode, ``respawn=False``, or the environments that ``respawn_fraction`` leaves
@@ -107,6 +114,7 @@ class TerraShiftEnv(EnvBase):
             num_objects=config.num_objects,
             heightmap_resolution=config.heightmap_resolution,
             observe_objects=config.observe_objects,
+            privileged_objects=config.privileged_objects,
             camera_resolution=config.camera_resolution,
         )
 
@@ -209,9 +217,14 @@ class TerraShiftEnv(EnvBase):
             "terminated": terminated,
             "truncated": truncated,
         }
+        objects = {
+            "objects": sim.view("object_features").clone(),
+            "objects_mask": sim.view("object_mask").clone(),
+        }
         if self.config.observe_objects:
-            out["objects"] = sim.view("object_features").clone()
-            out["objects_mask"] = sim.view("object_mask").clone()
+            out.update(objects)
+        elif self.config.privileged_objects:
+            out[PRIVILEGED] = TensorDict(objects, batch_size=(n,), device=self.device)
         if self.config.camera_resolution:
             out["camera"] = sim.view("camera").clone()
         for key in EVENT_KEYS:
@@ -228,12 +241,14 @@ def set_specs(
     num_objects: int,
     heightmap_resolution: int,
     observe_objects: bool = True,
+    privileged_objects: bool = False,
     camera_resolution: int = 0,
 ) -> None:
     """Gives ``env`` (batch ``[N]``) the specs of the table in :class:`TerraShiftEnv`'s
     docstring for ``num_agents`` agents, ``num_objects`` object slots and a heightmap of
-    ``heightmap_resolution`` rays per side; the object sequence only if ``observe_objects``, and
-    a ``camera_resolution``-pixel camera if it is not 0."""
+    ``heightmap_resolution`` rays per side; the object sequence only if ``observe_objects``
+    (under ``"privileged"`` if ``privileged_objects`` instead), and a
+    ``camera_resolution``-pixel camera if it is not 0."""
     dev, n = env.device, env.batch_size[0]
     k, m, r = num_agents, num_objects, heightmap_resolution
 
@@ -249,9 +264,11 @@ def set_specs(
         **{key: Unbounded(shape=(n, 1), dtype=torch.int64, device=dev) for key in EVENT_KEYS},
         "episode_surface_work": Unbounded(shape=(n, 1), device=dev),
     }
+    objects = {"objects": unit_box(n, m, OBJECT_FEATURES), "objects_mask": flag(n, m)}
     if observe_objects:
-        observations["objects"] = unit_box(n, m, OBJECT_FEATURES)
-        observations["objects_mask"] = flag(n, m)
+        observations.update(objects)
+    elif privileged_objects:
+        observations[PRIVILEGED] = Composite(objects, shape=(n,))
     if camera_resolution:
         c = camera_resolution
         observations["camera"] = Bounded(

@@ -79,7 +79,14 @@ class TerraShiftModelConfig:
     """Read the object sequence (``"objects"``, ``"objects_mask"``) as a token set the agents
     attend to; False for an environment with ``observe_objects=False``: the agents attend to
     the spatial tokens alone, and the critics, which share the trunk, see no more than the
-    policy does."""
+    policy does (unless ``critic_objects``)."""
+    critic_objects: bool = setting(False)
+    """The value and baseline heads read the object sequence handed to the critics alone
+    (``("privileged", "objects")``, from a scene with ``privileged_objects``): in each head
+    every agent's embedding attends to the objects' tokens before the head's own attention, so
+    the critics see where spheres and goals are while the policy sees only what the trunk
+    reads (centralised training, decentralised execution). Refused with ``object_tokens``,
+    where the trunk already reads the objects for every head."""
     cnn_channels: list[int] = setting([16, 32, 32], STAGES)
     """Output channels of the CNN stem's convolutions."""
     cnn_kernels: list[int] = setting([5, 3, 3], STAGES)
@@ -170,6 +177,13 @@ class TerraShiftModelConfig:
             raise ValueError(
                 "model.tokenizer_min_tokens <= model.tokenizer_base_tokens <= "
                 f"model.tokenizer_max_tokens must hold, got {budget}"
+            )
+        if self.critic_objects and self.object_tokens:
+            raise ValueError(
+                "model.critic_objects=true gives the critics the object sequence that "
+                "model.object_tokens=true already gives the trunk, and so every head: set "
+                "model.object_tokens=false (the policy then reads no objects) or "
+                "model.critic_objects=false"
             )
         if any(abs(value) >= self.action_range for value in self.initial_action_mean):
             raise ValueError(

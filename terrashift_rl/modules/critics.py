@@ -9,13 +9,16 @@ and a mean over the agents present, so they take any number of agents and ignore
   environment with flat per-agent observations ``[*B, K, O]``, built from plain sizes: what to
   hand :class:`~terrashift_rl.objectives.mapoca.MAPOCALoss` in another TorchRL project.
 - :class:`CentralValueHead` and :class:`CounterfactualBaselineHead` are the same networks on the
-  per-agent embeddings of TerraShift's shared trunk, sized by a :class:`TerraShiftModelConfig`.
+  per-agent embeddings of TerraShift's shared trunk, sized by a :class:`TerraShiftModelConfig`;
+  with ``critic_objects`` each first reads the object sequence that the critics alone are
+  given (:class:`ObjectReader`).
 - :class:`AttentionValue` and :class:`AttentionBaseline` are the plain ``nn.Module`` both
   kinds are built from, for inputs of another form (pass your own encoders).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import torch
@@ -24,8 +27,16 @@ from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torch import Tensor, nn
 
+from terrashift_rl.modules import keys
 from terrashift_rl.modules.config import TerraShiftModelConfig
-from terrashift_rl.modules.layers import ResidualSelfAttention, UpdateDropout, masked_mean
+from terrashift_rl.modules.entities import ObjectEncoder
+from terrashift_rl.modules.layers import (
+    MultiHeadAttention,
+    ResidualSelfAttention,
+    UpdateDropout,
+    feed_forward,
+    masked_mean,
+)
 
 __all__ = [
     "AttentionBaseline",
@@ -34,6 +45,7 @@ __all__ = [
     "CentralValueHead",
     "CounterfactualBaseline",
     "CounterfactualBaselineHead",
+    "ObjectReader",
 ]
 
 
@@ -272,8 +284,73 @@ class AttentionBaseline(_AttentionPool):
         return self.mlp(masked_mean(sets, key_mask)).float()
 
 
+class ObjectReader(nn.Module):
+    """Agent embeddings that have read the object sequence: a critic's privileged view.
+
+    The objects' tokens (an :class:`~terrashift_rl.modules.entities.ObjectEncoder` of their
+    own, one token per object: the critics pool every agent anyway), then as a trunk layer
+    reads a token set: pre-norm cross-attention of the agents to the tokens and a pre-norm
+    feed-forward block, each residual. A step where no slot is active leaves the embeddings
+    to the feed-forward block alone.
+
+    Args:
+        config: network sizes.
+
+    Examples:
+        >>> reader = ObjectReader(TerraShiftModelConfig.small())
+        >>> reader(torch.randn(5, 8, 32), torch.randn(5, 4, 9)).shape
+        torch.Size([5, 8, 32])
+    """
+
+    def __init__(self, config: TerraShiftModelConfig) -> None:
+        super().__init__()
+        dim = config.embed_dim
+        self.object_encoder = ObjectEncoder(dataclasses.replace(config, relative_objects=False))
+        self.attention_norm = nn.LayerNorm(dim)
+        self.attention = MultiHeadAttention(dim, config.num_heads)
+        self.feed_forward_norm = nn.LayerNorm(dim)
+        self.feed_forward = feed_forward(dim, config.ffn_dim, dim, dropout=config.dropout)
+        self.residual_dropout = UpdateDropout(config.dropout)
+
+    def forward(
+        self, embedding: Tensor, objects: Tensor, objects_mask: Tensor | None = None
+    ) -> Tensor:
+        """Embeddings [..., K, d] updated from objects [..., M, F] (mask [..., M], True =
+        active; None: all)."""
+        tokens = self.object_encoder(objects, objects_mask)
+        read = self.attention(self.attention_norm(embedding), tokens, objects_mask)
+        embedding = embedding + self.residual_dropout(read)
+        return embedding + self.residual_dropout(
+            self.feed_forward(self.feed_forward_norm(embedding))
+        )
+
+
+def _object_reader(config: TerraShiftModelConfig) -> ObjectReader | None:
+    return ObjectReader(config) if config.critic_objects else None
+
+
+def _read_objects(
+    reader: ObjectReader | None,
+    embedding: Tensor,
+    objects: Tensor | None,
+    objects_mask: Tensor | None,
+) -> Tensor:
+    """``embedding`` after ``reader`` (if any) has read the privileged objects."""
+    if reader is None:
+        return embedding
+    if objects is None:
+        raise KeyError(
+            f"critics with critic_objects read {keys.PRIVILEGED_OBJECTS}, which the input "
+            "lacks: the scene hands it out with privileged_objects=true"
+        )
+    return reader(embedding, objects, objects_mask)
+
+
 class CentralValueHead(AttentionValue):
     """V(s) on the trunk's agent embeddings: residual self-attention, masked mean, MLP -> 1.
+
+    With ``config.critic_objects`` the embeddings first read the privileged object sequence
+    (:class:`ObjectReader`).
 
     Args:
         config: network sizes.
@@ -281,6 +358,10 @@ class CentralValueHead(AttentionValue):
     Examples:
         >>> head = CentralValueHead(TerraShiftModelConfig.small())
         >>> head(torch.randn(5, 8, 32)).shape
+        torch.Size([5, 1])
+        >>> config = dataclasses.replace(
+        ...     TerraShiftModelConfig.small(), object_tokens=False, critic_objects=True)
+        >>> CentralValueHead(config)(torch.randn(5, 8, 32), None, torch.randn(5, 4, 9)).shape
         torch.Size([5, 1])
     """
 
@@ -292,10 +373,26 @@ class CentralValueHead(AttentionValue):
             hidden_dim=config.critic_hidden_dim,
             dropout=config.dropout,
         )
+        self.object_reader = _object_reader(config)
+
+    def forward(
+        self,
+        embedding: Tensor,
+        agent_mask: Tensor | None = None,
+        objects: Tensor | None = None,
+        objects_mask: Tensor | None = None,
+    ) -> Tensor:
+        """Value [..., 1] of embeddings [..., K, d]; ``objects`` [..., M, F] and their mask
+        [..., M] are read with ``critic_objects`` (and required then)."""
+        features = _read_objects(self.object_reader, embedding, objects, objects_mask)
+        return super().forward(features, agent_mask)
 
 
 class CounterfactualBaselineHead(AttentionBaseline):
     """b_i on the trunk's agent embeddings e: g and f are linear maps d -> d and (d + A) -> d.
+
+    With ``config.critic_objects`` the embeddings first read the privileged object sequence
+    (:class:`ObjectReader`, the head's own).
 
     Args:
         config: network sizes.
@@ -317,6 +414,21 @@ class CounterfactualBaselineHead(AttentionBaseline):
             hidden_dim=config.critic_hidden_dim,
             dropout=config.dropout,
         )
+        self.object_reader = _object_reader(config)
+
+    def forward(
+        self,
+        embedding: Tensor,
+        action: Tensor,
+        agent_mask: Tensor | None = None,
+        objects: Tensor | None = None,
+        objects_mask: Tensor | None = None,
+    ) -> Tensor:
+        """Baselines [..., K, 1] from embeddings [..., K, d] and actions [..., K, A];
+        ``objects`` [..., M, F] and their mask [..., M] are read with ``critic_objects`` (and
+        required then)."""
+        features = _read_objects(self.object_reader, embedding, objects, objects_mask)
+        return super().forward(features, action, agent_mask)
 
 
 class CentralValue(TensorDictModule):

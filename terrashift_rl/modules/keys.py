@@ -23,6 +23,8 @@ __all__ = [
     "NORMAL_SCALE",
     "OBJECTS",
     "OBJECTS_MASK",
+    "PRIVILEGED_OBJECTS",
+    "PRIVILEGED_OBJECTS_MASK",
     "RECURRENT_STATE",
     "STATE_VALUE",
 ]
@@ -36,6 +38,11 @@ OBJECTS = "objects"
 """float32 [B, M, 9]; read by the trunk."""
 OBJECTS_MASK = "objects_mask"
 """bool [B, M], True where the slot holds an active object; absent means all active."""
+PRIVILEGED_OBJECTS = ("privileged", "objects")
+"""float32 [B, M, 9]: the object sequence handed to the critics alone; read by the value and
+baseline heads with ``critic_objects``, never by the trunk or the policy."""
+PRIVILEGED_OBJECTS_MASK = ("privileged", "objects_mask")
+"""bool [B, M], as ``OBJECTS_MASK`` for ``PRIVILEGED_OBJECTS``; absent means all active."""
 AGENT_OBSERVATION = ("agents", "observation")
 """float32 [B, K, 9] wavelet features in [-1, 1]; read by the trunk."""
 AGENT_MASK = ("agents", "mask")

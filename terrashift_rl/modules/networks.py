@@ -23,6 +23,10 @@ mask means all present, a missing recurrent state zeros at episode starts):
   ``state_value`` [B, 1].
 - ``baseline_head`` reads ``("agents", "embedding")``, ``("agents", "action")`` and
   ``("agents", "mask")``*; writes ``("agents", "baseline")`` [B, K, 1].
+- with ``critic_objects`` both heads also read ``("privileged", "objects")`` and
+  ``("privileged", "objects_mask")``*, the object sequence of a scene with
+  ``privileged_objects``; the trunk, and so the actor, never does: a trained actor acts on
+  what the trunk reads alone.
 
 How to use the sharing:
 
@@ -224,14 +228,18 @@ def make_terrashift_networks(
     policy_head = TensorDictModule(
         head(config, action_dim=action_dim), in_keys=[keys.AGENT_EMBEDDING], out_keys=head_keys
     )
+    # read by the critics alone: neither the trunk nor the policy head sees them
+    privileged = (
+        [keys.PRIVILEGED_OBJECTS, keys.PRIVILEGED_OBJECTS_MASK] if config.critic_objects else []
+    )
     value_head = TensorDictModule(
         CentralValueHead(config),
-        in_keys=[keys.AGENT_EMBEDDING, keys.AGENT_MASK],
+        in_keys=[keys.AGENT_EMBEDDING, keys.AGENT_MASK, *privileged],
         out_keys=[keys.STATE_VALUE],
     )
     baseline_head = TensorDictModule(
         CounterfactualBaselineHead(config, action_dim=action_dim),
-        in_keys=[keys.AGENT_EMBEDDING, keys.ACTION, keys.AGENT_MASK],
+        in_keys=[keys.AGENT_EMBEDDING, keys.ACTION, keys.AGENT_MASK, *privileged],
         out_keys=[keys.BASELINE],
     )
     return TerraShiftNetworks(trunk, policy_head, value_head, baseline_head, config=config)

@@ -255,6 +255,11 @@ class TerraShiftConfig:
     observe_objects: bool = True
     """Observe the object sequence (sphere and goal positions, velocities); False leaves the
     heightmap, the camera and the wavelets' own parameters as the only observations."""
+    privileged_objects: bool = False
+    """With ``observe_objects=False``, hand the object sequence out all the same, apart from the
+    observations, at ``("privileged", "objects")`` and ``("privileged", "objects_mask")``: for
+    critics that see more than the policy during training (centralised training, decentralised
+    execution), never for a policy. Refused with ``observe_objects``, which observes it."""
 
     def __post_init__(self) -> None:
         self.validate()
@@ -413,10 +418,22 @@ class TerraShiftConfig:
                 f"camera_resolution must be 0 (no camera) or an integer in "
                 f"[2, {MAX_CAMERA_RESOLUTION}], got {resolution!r}"
             )
-        for name in ("wrap_edges", "respawn", "count_surface_work", "observe_objects"):
+        for name in (
+            "wrap_edges",
+            "respawn",
+            "count_surface_work",
+            "observe_objects",
+            "privileged_objects",
+        ):
             value = getattr(self, name)
             if not isinstance(value, bool):
                 raise ValueError(f"{name} must be true or false, got {value!r}")
+        if self.privileged_objects and self.observe_objects:
+            raise ValueError(
+                "privileged_objects=true hands out the object sequence that observe_objects=true "
+                "already observes: set observe_objects=false (the policy then sees the images "
+                "alone) or privileged_objects=false"
+            )
         # imported here: the families' modules import this one
         from terrashift_rl.sim.actuators import ACTUATORS
 

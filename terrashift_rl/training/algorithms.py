@@ -432,6 +432,12 @@ def make_ippo(networks: TerraShiftNetworks, config: IPPOConfig, *, max_batch: in
             "algo=ippo sizes its per-agent value head by the networks' config: build the "
             "networks with make_terrashift_networks (or pass config= to TerraShiftNetworks)"
         )
+    if networks.config.critic_objects:
+        raise ValueError(
+            "algo=ippo's value reads each agent's own embedding, not the privileged objects "
+            "that model.critic_objects=true gives MA-POCA's and MAPPO's critics: set "
+            "model.critic_objects=false and env.privileged_objects=false, or another algo"
+        )
     device = next(networks.parameters()).device
     head = make_agent_value_head(networks.config).to(device)
     return _make_ppo(

@@ -237,7 +237,7 @@ def evaluate_baselines(
         (['heuristic', 'random', 'zero'], 2.0)
     """
     config = evaluation_scene(config, respawn=respawn).replace(
-        observe_objects=True, camera_resolution=0
+        observe_objects=True, privileged_objects=False, camera_resolution=0
     )
     policies: dict[str, Policy] = {
         "random": RandomPolicy(seed=seed),

@@ -67,8 +67,9 @@ def make_training_env(
 ) -> TransformedEnv:
     """TerraShift with the transforms the recurrent policy needs: ``is_init`` and its state.
 
-    Refuses a scene that lacks an observation the networks read (the camera, the objects), or
-    renders a camera they do not read, naming the settings."""
+    Refuses a scene that lacks an observation the networks read (the camera, the objects, the
+    critics' privileged objects), or renders a camera or hands out privileged objects they do
+    not read, naming the settings."""
     model = networks.config
     if model is not None:
         if bool(model.camera_channels) != bool(env_config.camera_resolution):
@@ -81,6 +82,14 @@ def make_training_env(
             raise ValueError(
                 "model.object_tokens=true reads the object sequence, which env.observe_objects="
                 "false leaves out: set model.object_tokens=false"
+            )
+        if model.critic_objects != env_config.privileged_objects:
+            raise ValueError(
+                f"model.critic_objects={str(model.critic_objects).lower()} but "
+                f"env.privileged_objects={str(env_config.privileged_objects).lower()}: the "
+                "critics read privileged objects exactly when the scene hands them out (both "
+                "true, with env.observe_objects=false and model.object_tokens=false, or both "
+                "false)"
             )
     base = TerraShiftEnv(env_config, num_envs=num_envs, device=device, seed=seed)
     primer = networks.make_tensordict_primer(env_config.num_agents)
