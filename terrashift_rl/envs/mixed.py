@@ -34,9 +34,10 @@ class MixedSceneEnv(EnvBase):
 
     Every scene keeps the first's observations: its heightmap resolution, its camera
     (``camera_resolution``, the same R x R frame whatever the grid) and whether it observes
-    the objects or hands them to critics alone (``privileged_objects``). The camera draws the colour pairs at grey levels spread over the scene's
-    own number of goals (:func:`~terrashift_rl.sim.camera.camera_levels`), so scenes with
-    different numbers of goals draw a pair at different levels.
+    the objects or hands them to critics alone (``privileged_objects``). The camera draws the
+    colour pairs at grey levels spread over the scene's own number of goals
+    (:func:`~terrashift_rl.sim.camera.camera_levels`), so scenes with different numbers of
+    goals draw a pair at different levels.
 
     Args:
         scenes: the scenes, each a :class:`~terrashift_rl.sim.TerraShiftConfig`, all with the
