@@ -1,6 +1,6 @@
 """The mixed-scene env with the overhead camera: every scene's frame at one resolution, with
-or without the object sequence, through a curriculum's advance; scenes that observe otherwise
-are refused."""
+or without the object sequence (or with it for the critics alone), through a curriculum's
+advance; scenes that observe otherwise are refused."""
 
 from __future__ import annotations
 
@@ -34,15 +34,27 @@ SMALL = {"grid_size": 8, "num_agents": 2, "num_objects": 1, "num_goals": 1}
 LARGE = {"grid_size": 12, "num_agents": 3, "num_objects": 2, "num_goals": 2}
 
 
-@pytest.mark.parametrize("observe_objects", [True, False])
-def test_every_scene_renders_its_own_frames_at_the_envs_resolution(observe_objects):
-    small = scene(**SMALL, observe_objects=observe_objects)
-    large = scene(**LARGE, observe_objects=observe_objects)
+@pytest.mark.parametrize(
+    ("observe_objects", "privileged_objects"), [(True, False), (False, False), (False, True)]
+)
+def test_every_scene_renders_its_own_frames_at_the_envs_resolution(
+    observe_objects, privileged_objects
+):
+    observed = {"observe_objects": observe_objects, "privileged_objects": privileged_objects}
+    small = scene(**SMALL, **observed)
+    large = scene(**LARGE, **observed)
     env = MixedSceneEnv([small, large], [2, 1], seed=0)
     check_env_specs(env)
     td = env.rollout(3)
     assert td["camera"].shape == (3, 3, 1, CAMERA, CAMERA)
     assert ("objects" in td) == observe_objects
+    assert ("privileged" in td) == privileged_objects
+    if observe_objects or privileged_objects:  # each scene's spheres, the small one padded
+        root = () if observe_objects else ("privileged",)
+        objects, mask = (td["next", (*root, key)][:, -1] for key in ("objects", "objects_mask"))
+        assert torch.equal(objects[:2, :1], env.envs[0].sim.view("object_features"))
+        assert torch.equal(mask[2:], env.envs[1].sim.view("object_mask"))
+        assert objects[:2, 1].eq(0).all() and not mask[:2, 1].any()
     # each scene's rows are the frames its own simulator drew, padded agents or not
     last = td["next", "camera"][:, -1]
     assert torch.equal(last[:2], env.envs[0].sim.view("camera"))
@@ -51,11 +63,15 @@ def test_every_scene_renders_its_own_frames_at_the_envs_resolution(observe_objec
 
 
 def test_a_scene_that_observes_otherwise_is_refused_by_name():
-    with pytest.raises(ValueError, match="camera_resolution=8 and observe_objects=True does not"):
+    with pytest.raises(ValueError, match="camera_resolution=8, observe_objects=True, privil"):
         MixedSceneEnv([scene(), scene(camera_resolution=8)], [1, 1])
     env = MixedSceneEnv([scene()], [2])
-    with pytest.raises(ValueError, match="observe_objects=False does not observe as this env"):
+    with pytest.raises(ValueError, match="observe_objects=False, privileged_objects=False does"):
         env.set_scenes([scene(observe_objects=False)], [2], seed=0)
+    hidden = scene(observe_objects=False)
+    env = MixedSceneEnv([hidden], [2])
+    with pytest.raises(ValueError, match="privileged_objects=True does not observe as this env"):
+        env.set_scenes([hidden.replace(privileged_objects=True)], [2], seed=0)
 
 
 def test_the_curriculum_keeps_the_camera_frames_through_an_advance(rollouts_around_an_advance):

@@ -1,5 +1,7 @@
 """TerraShiftEnv: specs, resets, seeding, event counts, bad input, TorchRL interoperability."""
 
+import dataclasses
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -9,7 +11,8 @@ from torchrl.envs.utils import check_env_specs
 from torchrl.modules import MultiAgentMLP, ProbabilisticActor, TanhNormal
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
-from terrashift_rl.envs import GROUP, TerraShiftEnv
+from terrashift_rl.envs import GROUP, PRIVILEGED, TerraShiftEnv
+from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
 from terrashift_rl.sim import COLUMN_SHAPES
 
 N = 3
@@ -35,20 +38,47 @@ def test_check_env_specs(shape):
     check_env_specs(TerraShiftEnv(num_envs=N, seed=0, column_shape=shape))
 
 
-@pytest.mark.parametrize(("camera", "objects"), [(24, True), (24, False), (0, False)])
-def test_check_env_specs_with_a_camera_and_without_objects(camera, objects):
-    env = TerraShiftEnv(num_envs=N, seed=0, camera_resolution=camera, observe_objects=objects)
+@pytest.mark.parametrize(
+    ("camera", "objects", "privileged"),
+    [(24, True, False), (24, False, False), (0, False, False), (24, False, True)],
+)
+def test_check_env_specs_with_a_camera_and_without_objects(camera, objects, privileged):
+    env = TerraShiftEnv(
+        num_envs=N,
+        seed=0,
+        camera_resolution=camera,
+        observe_objects=objects,
+        privileged_objects=privileged,
+    )
     check_env_specs(env)
     td = env.rollout(2)
     assert ("camera" in td) == bool(camera)
     assert ("objects" in td) == ("objects_mask" in td) == objects
+    assert (PRIVILEGED in td) == privileged
+    if privileged:  # the observed sequence's tensors, under another key
+        m = env.config.num_objects
+        assert td[PRIVILEGED, "objects"].shape == (N, 2, m, 9)
+        assert torch.equal(
+            td["next", PRIVILEGED, "objects"][:, -1], env.sim.view("object_features")
+        )
+        assert torch.equal(
+            td["next", PRIVILEGED, "objects_mask"][:, -1], env.sim.view("object_mask")
+        )
     if camera:
         assert td["camera"].shape == (N, 2, 1, camera, camera)
         assert td["camera"].min() >= 0.0 and td["camera"].max() <= 1.0
 
 
-def test_without_objects_the_observation_is_the_images_and_the_wavelets():
-    env = TerraShiftEnv(num_envs=N, seed=0, camera_resolution=16, observe_objects=False)
+@pytest.mark.parametrize("privileged", [False, True])
+def test_without_objects_the_observation_is_the_images_and_the_wavelets(privileged):
+    env = TerraShiftEnv(
+        num_envs=N,
+        seed=0,
+        camera_resolution=16,
+        observe_objects=False,
+        privileged_objects=privileged,
+    )
+    critics_alone = {(PRIVILEGED, "objects"), (PRIVILEGED, "objects_mask")} if privileged else set()
     assert set(env.observation_spec.keys(True, True)) == {
         (GROUP, "observation"),
         (GROUP, "mask"),
@@ -57,12 +87,22 @@ def test_without_objects_the_observation_is_the_images_and_the_wavelets():
         "episode_goals",
         "episode_out_of_bounds",
         "episode_surface_work",
+        *critics_alone,
     }
 
 
-@pytest.mark.parametrize("objects", [False, True])
-def test_sphere_positions_show_in_no_observation_but_the_images(objects):
-    env = TerraShiftEnv(num_envs=N, seed=0, camera_resolution=24, observe_objects=objects)
+@pytest.mark.parametrize(("objects", "privileged"), [(False, False), (True, False), (False, True)])
+def test_sphere_positions_show_in_no_observation_but_the_images(objects, privileged):
+    """Moving the spheres changes only the images among what a policy from pixels reads; the
+    object sequence changes where observed, and under ``"privileged"`` where handed to the
+    critics, which the actor does not read."""
+    env = TerraShiftEnv(
+        num_envs=N,
+        seed=0,
+        camera_resolution=24,
+        observe_objects=objects,
+        privileged_objects=privileged,
+    )
     td = env.reset()
     for action in random_actions(4, env):
         td[GROUP, "action"] = action
@@ -78,7 +118,13 @@ def test_sphere_positions_show_in_no_observation_but_the_images(objects):
         for key in env.observation_spec.keys(True, True)
         if not torch.equal(seen[key], moved[key])
     }
-    assert changed == {"camera", "heightmap", *(["objects"] if objects else [])}
+    critics_alone = {(PRIVILEGED, "objects")} if privileged else set()
+    assert changed == {"camera", "heightmap", *(["objects"] if objects else []), *critics_alone}
+    if not objects:
+        pixels = TerraShiftModelConfig(camera_channels=1, object_tokens=False)
+        networks = make_terrashift_networks(dataclasses.replace(pixels, critic_objects=privileged))
+        assert changed & set(networks.actor.in_keys) == {"camera", "heightmap"}
+        assert critics_alone <= set(networks.value_head.in_keys)
 
 
 def test_keys_and_shapes_follow_multi_agent_conventions():

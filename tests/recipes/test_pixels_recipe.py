@@ -1,6 +1,7 @@
-"""The pixels recipe: trains from the camera without the object sequence, in one scene or
-through a curriculum; a scene that lacks what the networks read, or a teacher without the
-objects, is refused at start-up."""
+"""The pixels recipe: trains from the camera without the object sequence (which the critics
+alone read), in one scene or through a curriculum; a scene that lacks what the networks read,
+or hands out what they do not, a teacher without the objects, or privileged objects where
+they are observed or no critic reads them, is refused at start-up."""
 
 import importlib.util
 import subprocess
@@ -52,7 +53,11 @@ def test_the_pixels_recipe_trains_from_the_camera_alone(tmp_path):
     assert checkpoint["env_config"]["observe_objects"] is False
     assert checkpoint["model_config"]["camera_channels"] == 1
     assert checkpoint["model_config"]["object_tokens"] is False
-    assert not any("object_encoder" in name for name in checkpoint["networks"])
+    # the critics alone read the objects: only their heads hold an object encoder
+    assert checkpoint["env_config"]["privileged_objects"] is True
+    assert checkpoint["model_config"]["critic_objects"] is True
+    readers = {name.split(".")[0] for name in checkpoint["networks"] if "object_encoder" in name}
+    assert readers == {"value_head", "baseline_head"}
 
 
 @pytest.mark.slow
@@ -77,8 +82,17 @@ def test_the_pixels_recipe_trains_through_a_curriculum(tmp_path):
     [
         ("smoke", ["env.camera_resolution=16"], "model.camera_channels=0 but env.camera_resol"),
         ("mapoca_pixels", [*TINY, "env.camera_resolution=0"], "model.camera_channels=1 but env"),
-        ("mapoca_pixels", [*TINY, "model.object_tokens=true"], "model.object_tokens=true reads"),
+        (
+            "mapoca_pixels",
+            [*TINY, "model.object_tokens=true", "model.critic_objects=false"],
+            "model.object_tokens=true reads",
+        ),
+        ("mapoca_pixels", [*TINY, "model.object_tokens=true"], "model.critic_objects=true gives"),
         ("mapoca_pixels", [*TINY, "loss.teacher_coeff=0.1"], "loss.teacher_coeff=0.1: the teach"),
+        ("mapoca_pixels", [*TINY, "env.observe_objects=true"], "privileged_objects=true hands"),
+        ("mapoca_pixels", [*TINY, "env.privileged_objects=false"], "model.critic_objects=true but"),
+        ("mapoca_pixels", [*TINY, "model.critic_objects=false"], "model.critic_objects=false but"),
+        ("mapoca_pixels", [*TINY, "algo=ippo"], "algo=ippo's value reads each agent's own"),
     ],
 )
 def test_what_the_networks_read_must_be_observed(tmp_path, config, overrides, message):

@@ -41,6 +41,10 @@ def test_presets_hold_the_paper_settings():
         ({"substeps": 2.5}, "substeps must be an integer"),
         ({"wrap_edges": "no"}, "wrap_edges must be true or false, got 'no'"),
         ({"respawn": "false"}, "respawn must be true or false, got 'false'"),
+        (
+            {"observe_objects": True, "privileged_objects": True},
+            "privileged_objects=true hands out the object sequence that observe_objects=true",
+        ),
         ({"respawn_fraction": 1.5}, r"respawn_fraction must be in \[0.0, 1.0\], got 1.5"),
         ({"sigma_max": "wide"}, "sigma_max must be a finite number, got 'wide'"),
         ({"approach_radius": -1.0}, "approach_radius must be in"),
