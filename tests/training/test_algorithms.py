@@ -324,3 +324,25 @@ def test_ppo_algorithms_replay_the_actor_and_update_eagerly_on_cuda(algo):
         assert math.isfinite(trainer.train_iteration()["loss_total"])
     assert trainer._actor_step.captured
     assert not trainer.algorithm.capturable
+
+
+@pytest.mark.parametrize("algo", ("mapoca", "mappo"))
+def test_privileged_critics_learn_from_the_objects_the_policy_does_not_see(algo):
+    torch.manual_seed(0)
+    model = dataclasses.replace(
+        TerraShiftModelConfig.small(), object_tokens=False, critic_objects=True
+    )
+    networks = make_terrashift_networks(model)
+    scene = ENV.replace(observe_objects=False, privileged_objects=True)
+    env = make_training_env(scene, networks, num_envs=3, device=torch.device("cpu"), seed=0)
+    config = train_config(algo=algo, num_envs=3, steps_per_iteration=8, minibatches=1)
+    trainer = terrashift.make_trainer(env, networks, config)
+    before = weights(trainer)
+    for _ in range(2):
+        metrics = trainer.train_iteration()
+        assert math.isfinite(metrics["loss_critic"])
+    after = weights(trainer)
+    readers = ("value_head.", "baseline_head.") if algo == "mapoca" else ("value_head.",)
+    for head in readers:
+        names = [name for name in after if name.startswith(f"{head}module.object_reader.")]
+        assert names and any(not torch.equal(after[name], before[name]) for name in names), head

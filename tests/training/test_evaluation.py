@@ -150,7 +150,7 @@ def test_evaluation_scores_the_reward_without_the_shaping_term(term):
 
 def test_baselines_of_a_pixels_scene_read_the_objects_and_face_the_same_scenes():
     n, seed, config = 3, 2, CFG.replace(max_episode_steps=24)
-    pixels = config.replace(camera_resolution=16, observe_objects=False)
+    pixels = config.replace(camera_resolution=16, observe_objects=False, privileged_objects=True)
     assert evaluate_baselines(pixels, num_envs=n, seed=seed) == evaluate_baselines(
         config, num_envs=n, seed=seed
     )
