@@ -17,6 +17,7 @@ from terrashift_rl.modules.critics import (
     CentralValueHead,
     CounterfactualBaseline,
     CounterfactualBaselineHead,
+    ObjectReader,
 )
 from terrashift_rl.modules.distributions import ScaledBeta
 from terrashift_rl.modules.entities import AgentEncoder, ObjectEncoder
@@ -40,6 +41,7 @@ __all__ = [
     "GaussianPolicyHead",
     "HeightmapEncoder",
     "ObjectEncoder",
+    "ObjectReader",
     "ScaledBeta",
     "SharedEmbeddingNetwork",
     "TerraShiftModelConfig",
