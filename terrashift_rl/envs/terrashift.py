@@ -217,14 +217,15 @@ class TerraShiftEnv(EnvBase):
             "terminated": terminated,
             "truncated": truncated,
         }
-        objects = {
-            "objects": sim.view("object_features").clone(),
-            "objects_mask": sim.view("object_mask").clone(),
-        }
-        if self.config.observe_objects:
-            out.update(objects)
-        elif self.config.privileged_objects:
-            out[PRIVILEGED] = TensorDict(objects, batch_size=(n,), device=self.device)
+        if self.config.observe_objects or self.config.privileged_objects:
+            objects = {
+                "objects": sim.view("object_features").clone(),
+                "objects_mask": sim.view("object_mask").clone(),
+            }
+            if self.config.observe_objects:
+                out.update(objects)
+            else:
+                out[PRIVILEGED] = TensorDict(objects, batch_size=(n,), device=self.device)
         if self.config.camera_resolution:
             out["camera"] = sim.view("camera").clone()
         for key in EVENT_KEYS:

@@ -30,13 +30,8 @@ from torch import Tensor, nn
 from terrashift_rl.modules import keys
 from terrashift_rl.modules.config import TerraShiftModelConfig
 from terrashift_rl.modules.entities import ObjectEncoder
-from terrashift_rl.modules.layers import (
-    MultiHeadAttention,
-    ResidualSelfAttention,
-    UpdateDropout,
-    feed_forward,
-    masked_mean,
-)
+from terrashift_rl.modules.layers import ResidualSelfAttention, UpdateDropout, masked_mean
+from terrashift_rl.modules.trunk import TrunkLayer
 
 __all__ = [
     "AttentionBaseline",
@@ -287,14 +282,13 @@ class AttentionBaseline(_AttentionPool):
 class ObjectReader(nn.Module):
     """Agent embeddings that have read the object sequence: a critic's privileged view.
 
-    The objects' tokens (an :class:`~terrashift_rl.modules.entities.ObjectEncoder` of their
-    own, one token per object: the critics pool every agent anyway), then as a trunk layer
-    reads a token set: pre-norm cross-attention of the agents to the tokens and a pre-norm
-    feed-forward block, each residual. A step where no slot is active leaves the embeddings
-    to the feed-forward block alone.
+    The objects' tokens (an :class:`~terrashift_rl.modules.entities.ObjectEncoder` of its own,
+    one token per object), then one :class:`~terrashift_rl.modules.trunk.TrunkLayer` with them
+    as its single token set: the agents attend to the objects, then to each other, then a
+    feed-forward block, each step residual.
 
     Args:
-        config: network sizes.
+        config: network sizes (its object settings aside: one shared token per object).
 
     Examples:
         >>> reader = ObjectReader(TerraShiftModelConfig.small())
@@ -304,29 +298,21 @@ class ObjectReader(nn.Module):
 
     def __init__(self, config: TerraShiftModelConfig) -> None:
         super().__init__()
-        dim = config.embed_dim
-        self.object_encoder = ObjectEncoder(dataclasses.replace(config, relative_objects=False))
-        self.attention_norm = nn.LayerNorm(dim)
-        self.attention = MultiHeadAttention(dim, config.num_heads)
-        self.feed_forward_norm = nn.LayerNorm(dim)
-        self.feed_forward = feed_forward(dim, config.ffn_dim, dim, dropout=config.dropout)
-        self.residual_dropout = UpdateDropout(config.dropout)
+        sizes = dataclasses.replace(config, object_tokens=False, relative_objects=False)
+        self.object_encoder = ObjectEncoder(sizes)
+        self.layer = TrunkLayer(sizes)
 
     def forward(
-        self, embedding: Tensor, objects: Tensor, objects_mask: Tensor | None = None
+        self,
+        embedding: Tensor,
+        objects: Tensor,
+        objects_mask: Tensor | None = None,
+        agent_mask: Tensor | None = None,
     ) -> Tensor:
         """Embeddings [..., K, d] updated from objects [..., M, F] (mask [..., M], True =
-        active; None: all)."""
+        active; None: all); absent agents (``agent_mask`` [..., K] False) are not attended."""
         tokens = self.object_encoder(objects, objects_mask)
-        read = self.attention(self.attention_norm(embedding), tokens, objects_mask)
-        embedding = embedding + self.residual_dropout(read)
-        return embedding + self.residual_dropout(
-            self.feed_forward(self.feed_forward_norm(embedding))
-        )
-
-
-def _object_reader(config: TerraShiftModelConfig) -> ObjectReader | None:
-    return ObjectReader(config) if config.critic_objects else None
+        return self.layer(embedding, [tokens], [objects_mask], agent_mask)
 
 
 def _read_objects(
@@ -334,6 +320,7 @@ def _read_objects(
     embedding: Tensor,
     objects: Tensor | None,
     objects_mask: Tensor | None,
+    agent_mask: Tensor | None,
 ) -> Tensor:
     """``embedding`` after ``reader`` (if any) has read the privileged objects."""
     if reader is None:
@@ -343,7 +330,7 @@ def _read_objects(
             f"critics with critic_objects read {keys.PRIVILEGED_OBJECTS}, which the input "
             "lacks: the scene hands it out with privileged_objects=true"
         )
-    return reader(embedding, objects, objects_mask)
+    return reader(embedding, objects, objects_mask, agent_mask)
 
 
 class CentralValueHead(AttentionValue):
@@ -373,7 +360,7 @@ class CentralValueHead(AttentionValue):
             hidden_dim=config.critic_hidden_dim,
             dropout=config.dropout,
         )
-        self.object_reader = _object_reader(config)
+        self.object_reader = ObjectReader(config) if config.critic_objects else None
 
     def forward(
         self,
@@ -384,7 +371,7 @@ class CentralValueHead(AttentionValue):
     ) -> Tensor:
         """Value [..., 1] of embeddings [..., K, d]; ``objects`` [..., M, F] and their mask
         [..., M] are read with ``critic_objects`` (and required then)."""
-        features = _read_objects(self.object_reader, embedding, objects, objects_mask)
+        features = _read_objects(self.object_reader, embedding, objects, objects_mask, agent_mask)
         return super().forward(features, agent_mask)
 
 
@@ -414,7 +401,7 @@ class CounterfactualBaselineHead(AttentionBaseline):
             hidden_dim=config.critic_hidden_dim,
             dropout=config.dropout,
         )
-        self.object_reader = _object_reader(config)
+        self.object_reader = ObjectReader(config) if config.critic_objects else None
 
     def forward(
         self,
@@ -427,7 +414,7 @@ class CounterfactualBaselineHead(AttentionBaseline):
         """Baselines [..., K, 1] from embeddings [..., K, d] and actions [..., K, A];
         ``objects`` [..., M, F] and their mask [..., M] are read with ``critic_objects`` (and
         required then)."""
-        features = _read_objects(self.object_reader, embedding, objects, objects_mask)
+        features = _read_objects(self.object_reader, embedding, objects, objects_mask, agent_mask)
         return super().forward(features, action, agent_mask)
 
 

@@ -33,6 +33,18 @@ def play(env: TerraShiftEnv, actions: torch.Tensor) -> TensorDict:
     return torch.stack(frames)
 
 
+def observing_env(camera: int, *, objects: bool, privileged: bool) -> TerraShiftEnv:
+    """The default scene with a ``camera``-pixel camera (0: none), the object sequence
+    observed, handed to the critics alone (``privileged``) or neither."""
+    return TerraShiftEnv(
+        num_envs=N,
+        seed=0,
+        camera_resolution=camera,
+        observe_objects=objects,
+        privileged_objects=privileged,
+    )
+
+
 @pytest.mark.parametrize("shape", COLUMN_SHAPES)
 def test_check_env_specs(shape):
     check_env_specs(TerraShiftEnv(num_envs=N, seed=0, column_shape=shape))
@@ -43,13 +55,7 @@ def test_check_env_specs(shape):
     [(24, True, False), (24, False, False), (0, False, False), (24, False, True)],
 )
 def test_check_env_specs_with_a_camera_and_without_objects(camera, objects, privileged):
-    env = TerraShiftEnv(
-        num_envs=N,
-        seed=0,
-        camera_resolution=camera,
-        observe_objects=objects,
-        privileged_objects=privileged,
-    )
+    env = observing_env(camera, objects=objects, privileged=privileged)
     check_env_specs(env)
     td = env.rollout(2)
     assert ("camera" in td) == bool(camera)
@@ -71,13 +77,7 @@ def test_check_env_specs_with_a_camera_and_without_objects(camera, objects, priv
 
 @pytest.mark.parametrize("privileged", [False, True])
 def test_without_objects_the_observation_is_the_images_and_the_wavelets(privileged):
-    env = TerraShiftEnv(
-        num_envs=N,
-        seed=0,
-        camera_resolution=16,
-        observe_objects=False,
-        privileged_objects=privileged,
-    )
+    env = observing_env(16, objects=False, privileged=privileged)
     critics_alone = {(PRIVILEGED, "objects"), (PRIVILEGED, "objects_mask")} if privileged else set()
     assert set(env.observation_spec.keys(True, True)) == {
         (GROUP, "observation"),
@@ -96,13 +96,7 @@ def test_sphere_positions_show_in_no_observation_but_the_images(objects, privile
     """Moving the spheres changes only the images among what a policy from pixels reads; the
     object sequence changes where observed, and under ``"privileged"`` where handed to the
     critics, which the actor does not read."""
-    env = TerraShiftEnv(
-        num_envs=N,
-        seed=0,
-        camera_resolution=24,
-        observe_objects=objects,
-        privileged_objects=privileged,
-    )
+    env = observing_env(24, objects=objects, privileged=privileged)
     td = env.reset()
     for action in random_actions(4, env):
         td[GROUP, "action"] = action
