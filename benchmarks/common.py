@@ -147,6 +147,7 @@ EVALUATION_SUFFIXES = (
     "best_training_mode_evaluation",
     "snapshots_evaluation",
     "pretraining_scene_evaluation",  # a larger scene's policy back on the pretraining scene
+    "finetune_scene_evaluation",  # a larger scene's policy on the 30 x 30 finetune scene
 )
 """How the evaluation files of a run's log folder are named: ``<folder>_<suffix>.json``."""
 
