@@ -128,6 +128,16 @@ class ScriptedHeuristicPolicy:
     orientation to the goal's direction. With ``target`` and ``shape`` actions the amplitude
     and width actions are those set points themselves.
 
+    **Keeping the spheres apart** (``surface_flow``). A sliding surface moves a rolling sphere
+    only by changing speed under it: a sphere that it presses against another spins up until
+    it rolls in place, and from then on no flow within the speed limit moves it further that
+    way (docs/actuators.md). So each flow turns away from every other sphere in play whose
+    centre lies within ``clearance`` sphere diameters of its own sphere's, by the unit vector
+    away from that sphere times its nearness (1 touching, 0 at ``clearance``), and its speed
+    is scaled by one minus the largest nearness of a sphere ahead (times the cosine of the
+    angle between the way to it and the flow's), so that a sphere closing on another
+    straight ahead stops before it touches.
+
     Args:
         config: the scene's config (grid, platform, gains, limits, timing).
         offset: distance [cells] from the sphere centre back to the bump centre (2 cells
@@ -139,6 +149,9 @@ class ScriptedHeuristicPolicy:
         engage_distance: distance [cells] to the target below which the bump is raised.
         heading_gain: with ``surface_flow``, the spin aimed at per radian between the flow's
             direction and the goal's [1 / wave step].
+        clearance: with ``surface_flow``, the distance between sphere centres [sphere
+            diameters], > 1, within which a flow steers its sphere clear of another; None
+            steers none clear.
 
     Example:
         >>> from tensordict import TensorDict
@@ -164,6 +177,7 @@ class ScriptedHeuristicPolicy:
         position_gain: float = 1.0,
         engage_distance: float = 1.5,
         heading_gain: float = 1.0,
+        clearance: float | None = 2.0,
     ):
         if not 0.0 < amplitude <= 1.0:
             raise ValueError(f"amplitude must be in (0, 1], got {amplitude}")
@@ -176,6 +190,8 @@ class ScriptedHeuristicPolicy:
         ):
             if not math.isfinite(value) or value < 0.0:
                 raise ValueError(f"{name} must be a finite number >= 0, got {value}")
+        if clearance is not None and not (math.isfinite(clearance) and clearance > 1.0):
+            raise ValueError(f"clearance must be a finite number > 1 or None, got {clearance}")
         self.config = config
         self.offset = offset
         self.extra_offset = extra_offset
@@ -184,6 +200,7 @@ class ScriptedHeuristicPolicy:
         self.position_gain = position_gain
         self.engage_distance = engage_distance
         self.heading_gain = heading_gain
+        self.clearance = clearance
         self.amplitude_limit, self.amplitude_gain = ACTUATORS[config.actuator].amplitude_limits(
             config
         )[1:]
@@ -207,6 +224,31 @@ class ScriptedHeuristicPolicy:
         fallback = match.long().argmax(-1)
         slot = torch.where(mask.gather(-1, preferred), preferred, fallback)
         return slot, (count > 0).expand(b, num_agents)
+
+    def _steer_clear(
+        self,
+        sphere: torch.Tensor,
+        slot: torch.Tensor,
+        objects: torch.Tensor,
+        mask: torch.Tensor,
+        direction: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each agent's flow direction [B, K, 2] turned away from the other spheres in play
+        near its sphere (``sphere``, [B, K, 2] cells, in slot ``slot``), and the factor [B, K]
+        on its speed (see "Keeping the spheres apart")."""
+        cfg = self.config
+        others = self._metres_to_cells(objects[..., 0:2]).unsqueeze(1)  # [B, 1, M, 2]
+        away = sphere.unsqueeze(-2) - others  # [B, K, M, 2]
+        distance = away.norm(dim=-1).clamp(min=1e-6)
+        away = away / distance.unsqueeze(-1)
+        diameter = 2.0 * cfg.sphere_radius / cfg.cell_size
+        nearness = ((self.clearance - distance / diameter) / (self.clearance - 1.0)).clamp(0, 1)
+        slots = torch.arange(mask.shape[-1], device=mask.device)
+        nearness = nearness * (mask.unsqueeze(1) & (slots != slot.unsqueeze(-1)))
+        steered = direction + (nearness.unsqueeze(-1) * away).sum(-2)
+        ahead = -(away * direction.unsqueeze(-2)).sum(-1)
+        speed = 1.0 - (nearness * ahead.clamp(min=0.0)).amax(-1)
+        return steered / steered.norm(dim=-1, keepdim=True).clamp(min=1e-6), speed
 
     # --- policy ---------------------------------------------------------------------------
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
@@ -241,6 +283,7 @@ class ScriptedHeuristicPolicy:
         later = torch.arange(k, device=agent.device) >= mask.shape[-1]
         desired_spin = torch.zeros_like(spin)
         sign = torch.ones_like(spin)
+        speed = torch.ones_like(spin)
         if cfg.actuator == "rotors":
             sign = torch.where(later, -1.0, 1.0).expand_as(spin)
             right = torch.stack([direction[..., 1], -direction[..., 0]], dim=-1)
@@ -251,6 +294,8 @@ class ScriptedHeuristicPolicy:
                 back = back + self.offset
             target = sphere - back.unsqueeze(-1) * direction
         if cfg.actuator == "surface_flow":
+            if self.clearance is not None:
+                direction, speed = self._steer_clear(sphere, slot, objects.float(), mask, direction)
             heading = torch.atan2(direction[..., 1], direction[..., 0])
             turn_by = torch.remainder(heading - angle + math.pi, 2 * math.pi) - math.pi
             desired_spin = (self.heading_gain * turn_by).clamp(
@@ -268,7 +313,9 @@ class ScriptedHeuristicPolicy:
 
         # shape set points: a positive bump of width sigma, no spin; flat while travelling
         close = engaged & (distance <= self.engage_distance)
-        amplitude_target = torch.where(close, sign * self.amplitude * self.amplitude_limit, 0.0)
+        amplitude_target = torch.where(
+            close, sign * speed * self.amplitude * self.amplitude_limit, 0.0
+        )
         # a set point is the action itself where the mode sets targets; otherwise the action
         # is the error over the change that one decision of full action produces
         per_decision = cfg.wave_step * cfg.action_repeat
