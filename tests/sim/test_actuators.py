@@ -181,6 +181,42 @@ def test_sphere_put_on_a_sliding_surface_slips_then_rolls_at_two_sevenths(shape,
     assert energies[-1] == pytest.approx(cfg.sphere_mass * u**2 / 7, rel=0.02)
 
 
+@pytest.mark.parametrize(
+    ("shape", "u", "v0", "spin"),
+    [("box", 1.0, 0.0, -1.0 / 0.075), ("smooth", -0.4, 0.3, 0.0), ("smooth", 0.5, 0.0, 4.0)],
+)
+def test_a_sphere_on_a_sliding_surface_ends_rolling_at_two_u_plus_five_c_over_seven(
+    shape, u, v0, spin
+):
+    """Friction acts at the contact point, so on a flat top it leaves C = v + (2/5) r (w x z),
+    the angular momentum about the contact point over m r, as it was: once its slip has
+    stopped, a sphere rolls at v = (2u + 5C)/7 on a surface sliding at u, whatever it did
+    before (2u/7 from rest). A sphere that spins in place (w_y = -u/r: C = -2u/5, the first
+    case) stays where it is: a steady flow exerts no force on a rolling sphere. The other two:
+    thrown against the flow, and spun forwards from rest."""
+    sc = flow_scene(shape, linear_damping=0.0)
+    cfg = sc.config
+    sc.place_spheres(
+        torch.tensor([[0.0, 0.0, resting_height(cfg)]]),
+        velocities=torch.tensor([[v0, 0.0, 0.0]]),
+        angular_velocities=torch.tensor([[0.0, spin, 0.0]]),
+    )
+    sc.set_surface_velocity(torch.tensor([u, 0.0]))
+    stored = v0 + 0.4 * cfg.sphere_radius * spin
+    rolling = (2 * u + 5 * stored) / 7
+    sc.step(30)  # the slip ends within 0.05 s at mu = 0.7
+    start = sc.sphere_position[0, 0, 0].item()
+    for _ in range(10):
+        sc.step()
+        v = sc.sphere_velocity[0, 0]
+        assert v[0].item() == pytest.approx(rolling, rel=0.01, abs=2e-3)
+        assert abs(v[1].item()) < 1e-4
+        w = sc.sphere_angular_velocity[0, 0]  # the contact point rides the surface
+        assert v[0].item() - cfg.sphere_radius * w[1].item() == pytest.approx(u, abs=2e-3)
+    travelled = sc.sphere_position[0, 0, 0].item() - start
+    assert travelled == pytest.approx(rolling * 10 * cfg.tick_dt, abs=5e-4)
+
+
 @pytest.mark.parametrize("shape", COLUMN_SHAPES)
 def test_a_rolling_sphere_on_a_stopped_surface_never_gains_energy(shape):
     """Without input (the surface stopped) a sphere thrown spinning onto it never has more
