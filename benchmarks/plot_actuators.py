@@ -2,7 +2,7 @@
 
     python benchmarks/plot_actuators.py --out docs/figures/actuator_surfaces.png
 
-One panel per family (``terrashift_rl.sim.ACTUATORS``), each the same pretraining scene of
+One panel per family (``terrashift_rl.sim.ACTUATORS``, by name), each the same pretraining scene of
 ``--seed`` (``--column-shape`` columns, evaluation mode: no respawn) played on the CPU by
 :class:`~terrashift_rl.envs.baselines.ScriptedHeuristicPolicy` for ``--decisions`` decisions:
 the column heights [m] of a family that moves the columns, the in-plane surface velocity
@@ -105,7 +105,7 @@ def main() -> None:
     args = parser.parse_args()
     figure = Figure(figsize=(4.2 * len(ACTUATORS), 3.8), dpi=90, layout="constrained")
     FigureCanvasAgg(figure)
-    for axes, family in zip(figure.subplots(1, len(ACTUATORS)), ACTUATORS, strict=True):
+    for axes, family in zip(figure.subplots(1, len(ACTUATORS)), sorted(ACTUATORS), strict=True):
         env = TerraShiftEnv(num_envs=1, seed=args.seed, respawn=False, actuator=family,
                             column_shape=args.column_shape)  # fmt: skip
         paths = heuristic_paths(env, args.decisions)
