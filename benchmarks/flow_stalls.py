@@ -33,7 +33,7 @@ from common import benchmark_parser, run_header, table_header, table_row, write_
 
 from terrashift_rl.envs import TerraShiftEnv
 from terrashift_rl.envs.baselines import ScriptedHeuristicPolicy
-from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.sim import Simulator, TerraShiftConfig
 from terrashift_rl.sim.config import ACTION_MODES
 from terrashift_rl.training.evaluation import evaluation_scene
 
@@ -42,7 +42,7 @@ SPUN_UP = 0.2
 flow at most at (2 - 5 * 0.2) / 7 = 0.14 m/s, half its speed from rest."""
 
 
-def stored_spin(sim) -> torch.Tensor:
+def stored_spin(sim: Simulator) -> torch.Tensor:
     """C = v + (2/5) r (w x z) of every sphere, [num_envs, M, 2] [m/s]."""
     r = sim.config.sphere_radius
     v = sim.view("sphere_velocity")[..., :2]
