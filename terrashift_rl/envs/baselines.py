@@ -130,13 +130,13 @@ class ScriptedHeuristicPolicy:
 
     **Keeping the spheres apart** (``surface_flow``). A sliding surface moves a rolling sphere
     only by changing speed under it: a sphere that it presses against another spins up until
-    it rolls in place, and from then on no flow within the speed limit moves it further that
-    way (docs/actuators.md). So each flow turns away from every other sphere in play whose
-    centre lies within ``clearance`` sphere diameters of its own sphere's, by the unit vector
-    away from that sphere times its nearness (1 touching, 0 at ``clearance``), and its speed
-    is scaled by one minus the largest nearness of a sphere ahead (times the cosine of the
-    angle between the way to it and the flow's), so that a sphere closing on another
-    straight ahead stops before it touches.
+    it rolls in place, and from then on only a faster flow moves it further that way, none at
+    all if the flow ran at the speed limit (docs/actuators.md). So each flow turns away from
+    every other sphere in play whose centre lies within ``clearance`` sphere diameters of its
+    own sphere's, by the unit vector away from that sphere times its nearness (1 touching, 0
+    at ``clearance``), and its speed is scaled by one minus the largest nearness of a sphere
+    ahead (times the cosine of the angle between the way to it and the flow's), so that a
+    sphere closing on another straight ahead stops before it touches.
 
     Args:
         config: the scene's config (grid, platform, gains, limits, timing).
