@@ -3,7 +3,7 @@
 On a flat top, friction leaves C = v + (2/5) r (w x z) of a sphere as it was, and a sphere
 rolling on a surface sliding at u moves at (2u + 5C)/7 (docs/physics.md): a steady flow exerts
 no force on it. A sphere that the flow presses against another spins up until it rolls in place
-(C = -2u/5), and then no flow within ``max_surface_speed`` moves it further that way. This
+(C = -2u/5), and then only a flow faster than u moves it further that way. This
 script plays the surface flow's pretraining scene (box columns, evaluation mode, the main job's
 ``shape`` actions unless ``--action-mode``) with
 :class:`~terrashift_rl.envs.baselines.ScriptedHeuristicPolicy` at each ``--clearances`` value
