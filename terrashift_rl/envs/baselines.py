@@ -128,15 +128,16 @@ class ScriptedHeuristicPolicy:
     orientation to the goal's direction. With ``target`` and ``shape`` actions the amplitude
     and width actions are those set points themselves.
 
-    **Keeping the spheres apart** (``surface_flow``). A sliding surface moves a rolling sphere
-    only by changing speed under it: a sphere that it presses against another spins up until
-    it rolls in place, and from then on only a faster flow moves it further that way, none at
-    all if the flow ran at the speed limit (docs/actuators.md). So each flow turns away from
-    every other sphere in play whose centre lies within ``clearance`` sphere diameters of its
-    own sphere's, by the unit vector away from that sphere times its nearness (1 touching, 0
-    at ``clearance``), and its speed is scaled by one minus the largest nearness of a sphere
-    ahead (times the cosine of the angle between the way to it and the flow's), so that a
-    sphere closing on another straight ahead stops before it touches.
+    **Keeping the spheres apart** (``surface_flow``, ``rotors``). A sliding surface moves a
+    rolling sphere only by changing speed under it: a sphere that it presses against another
+    spins up until it rolls in place, and from then on only a faster flow moves it further
+    that way, none at all if the flow ran at the speed limit (docs/actuators.md). So the way
+    each sphere is driven turns away from every other sphere in play whose centre lies within
+    ``clearance`` sphere diameters of its own, by the unit vector away from that sphere times
+    its nearness (1 touching, 0 at ``clearance``), and the amplitude is scaled by one minus
+    the largest nearness of a sphere ahead (times the cosine of the angle between the way to
+    it and the goal's), so that a sphere closing on another straight ahead stops before it
+    touches. The flow turns onto that way; the rotors stand on either side of it.
 
     Args:
         config: the scene's config (grid, platform, gains, limits, timing).
@@ -149,9 +150,9 @@ class ScriptedHeuristicPolicy:
         engage_distance: distance [cells] to the target below which the bump is raised.
         heading_gain: with ``surface_flow``, the spin aimed at per radian between the flow's
             direction and the goal's [1 / wave step].
-        clearance: with ``surface_flow``, the distance between sphere centres [sphere
-            diameters], > 1, within which a flow steers its sphere clear of another; None
-            steers none clear.
+        clearance: with ``surface_flow`` and ``rotors``, the distance between sphere centres
+            [sphere diameters], > 1, within which a patch steers its sphere clear of another;
+            None steers none clear.
 
     Example:
         >>> from tensordict import TensorDict
@@ -233,9 +234,9 @@ class ScriptedHeuristicPolicy:
         mask: torch.Tensor,
         direction: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Each agent's flow direction [B, K, 2] turned away from the other spheres in play
+        """Each agent's driving direction [B, K, 2] turned away from the other spheres in play
         near its sphere (``sphere``, [B, K, 2] cells, in slot ``slot``), and the factor [B, K]
-        on its speed (see "Keeping the spheres apart")."""
+        on its amplitude (see "Keeping the spheres apart")."""
         cfg = self.config
         others = self._metres_to_cells(objects[..., 0:2]).unsqueeze(1)  # [B, 1, M, 2]
         away = sphere.unsqueeze(-2) - others  # [B, K, M, 2]
@@ -284,9 +285,12 @@ class ScriptedHeuristicPolicy:
         desired_spin = torch.zeros_like(spin)
         sign = torch.ones_like(spin)
         speed = torch.ones_like(spin)
+        steered = direction
+        if self.clearance is not None and cfg.actuator in ("surface_flow", "rotors"):
+            steered, speed = self._steer_clear(sphere, slot, objects.float(), mask, direction)
         if cfg.actuator == "rotors":
             sign = torch.where(later, -1.0, 1.0).expand_as(spin)
-            right = torch.stack([direction[..., 1], -direction[..., 0]], dim=-1)
+            right = torch.stack([steered[..., 1], -steered[..., 0]], dim=-1)
             target = sphere - (sign * self.sigma).unsqueeze(-1) * right
         else:
             back = self.extra_offset * later
@@ -294,9 +298,7 @@ class ScriptedHeuristicPolicy:
                 back = back + self.offset
             target = sphere - back.unsqueeze(-1) * direction
         if cfg.actuator == "surface_flow":
-            if self.clearance is not None:
-                direction, speed = self._steer_clear(sphere, slot, objects.float(), mask, direction)
-            heading = torch.atan2(direction[..., 1], direction[..., 0])
+            heading = torch.atan2(steered[..., 1], steered[..., 0])
             turn_by = torch.remainder(heading - angle + math.pi, 2 * math.pi) - math.pi
             desired_spin = (self.heading_gain * turn_by).clamp(
                 -cfg.max_angular_velocity, cfg.max_angular_velocity

@@ -334,6 +334,48 @@ def test_rotor_heuristic_spins_beside_the_sphere_with_its_rim_moving_towards_the
     assert swapped[GROUP, "action"][0, 0, VY] > 0.5 and swapped[GROUP, "action"][0, 1, VY] < -0.5
 
 
+def test_rotor_heuristic_steers_clear_of_another_sphere_and_stops_short_of_one_ahead():
+    """Sphere 0 at (7, 7), its goal along +x at (12, 7), its two rotors (agents 0 and 2;
+    agent 1 serves slot 1) in place on either side (shape actions: the amplitude action is
+    the spin set point). Another sphere in play
+    one diameter and a half ahead, a little to the left (+y), turns the way the rims drive it
+    clockwise, so both rotors move on along +x, and halves their spins; touching straight
+    ahead, it stops them; ``clearance=None`` leaves them spinning in place as without it."""
+    cfg = TerraShiftConfig(
+        actuator="rotors", action_mode="shape", num_agents=3, num_objects=2, num_goals=1
+    )
+    diameter = 2 * cfg.sphere_radius / cfg.cell_size  # [cells]
+    sphere, goal = (7.0, 7.0), (12.0, 7.0)
+
+    def action(other: tuple[float, float] | None, clearance: float | None = 2.0):
+        td = posed_scene([(7.0, 8.0), (2.0, 2.0), (7.0, 6.0)], [sphere, other], [goal, goal], cfg)
+        return ScriptedHeuristicPolicy(cfg, clearance=clearance)(td)[GROUP, "action"][0, 0::2]
+
+    alone = action(None)
+    assert alone[0, AMP] == 1.0 and alone[1, AMP] == -1.0
+    assert alone[:, VX : VY + 1].abs().max() < 1e-5
+    blocked = action((7.0 + 1.5 * diameter, 7.5))
+    assert 0.4 < blocked[0, AMP] < 0.6 and -0.6 < blocked[1, AMP] < -0.4
+    assert blocked[0, VX] > 0.1 and blocked[1, VX] < -0.1  # round, clockwise, to the new way
+    touching = action((7.0 + diameter, 7.0))
+    torch.testing.assert_close(touching[:, AMP], torch.zeros(2), atol=1e-6, rtol=0)
+    torch.testing.assert_close(action((7.0 + diameter, 7.0), clearance=None), alone)
+
+
+def test_rotor_heuristic_keeps_more_spheres_than_it_did_without_steering_clear():
+    """Sixteen evaluation episodes on box columns: steering the spheres clear of each other
+    delivers nearly all of them, driving each straight at its goal about eight in ten."""
+    cfg = TerraShiftConfig(
+        actuator="rotors", column_shape="box", respawn=False, max_episode_steps=160
+    )
+    goals = {}
+    for clearance in (None, 2.0):
+        env = TerraShiftEnv(cfg, num_envs=16, seed=0)
+        scores = evaluate(env, ScriptedHeuristicPolicy(cfg, clearance=clearance), progress=False)
+        goals[clearance] = scores["goal_fraction"]
+    assert goals[2.0] >= 0.95 and goals[None] <= goals[2.0] - 0.1, goals
+
+
 @pytest.mark.parametrize("actuator", sorted(ACTUATORS))
 def test_every_family_passes_torchrl_spec_checks_and_takes_every_baseline(actuator):
     env = TerraShiftEnv(num_envs=2, seed=0, actuator=actuator, max_episode_steps=8)
