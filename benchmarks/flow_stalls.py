@@ -1,11 +1,11 @@
-"""Why the surface flow's spheres stop: its scripted heuristic with and without steering clear.
+"""Why the sliding families' spheres stop: their scripted heuristic with and without steering clear.
 
 On a flat top, friction leaves C = v + (2/5) r (w x z) of a sphere as it was, and a sphere
 rolling on a surface sliding at u moves at (2u + 5C)/7 (docs/physics.md): a steady flow exerts
 no force on it. A sphere that the flow presses against another spins up until it rolls in place
-(C = -2u/5), and then only a flow faster than u moves it further that way. This
-script plays the surface flow's pretraining scene (box columns, evaluation mode, the main job's
-``shape`` actions unless ``--action-mode``) with
+(C = -2u/5), and then only a flow faster than u moves it further that way; the rotors' surface
+slides too. This script plays the pretraining scene of ``--actuator`` (``surface_flow`` unless
+told; box columns, evaluation mode, the main job's ``shape`` actions unless ``--action-mode``) with
 :class:`~terrashift_rl.envs.baselines.ScriptedHeuristicPolicy` at each ``--clearances`` value
 ("none": every sphere driven straight at its goal) and reports, per value over the seeds:
 
@@ -20,6 +20,7 @@ script plays the surface flow's pretraining scene (box columns, evaluation mode,
 
     python benchmarks/flow_stalls.py --num-envs 64 --seeds 0 1 2
     python benchmarks/flow_stalls.py --clearances none --overrides num_objects=1 num_goals=1
+    python benchmarks/flow_stalls.py --actuator rotors --num-envs 64 --seeds 0 1 2
 """
 
 from __future__ import annotations
@@ -120,6 +121,7 @@ def main() -> None:
     parser.add_argument("--num-envs", type=int, default=64, help="episodes per seed")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--clearances", nargs="+", default=["none", "2.0"])
+    parser.add_argument("--actuator", default="surface_flow", choices=("surface_flow", "rotors"))
     parser.add_argument("--action-mode", default="shape", choices=ACTION_MODES)
     parser.add_argument("--overrides", nargs="+", default=[], metavar="FIELD=VALUE")
     parser.add_argument("--out", type=Path, default=None, help="JSON path")
@@ -128,11 +130,12 @@ def main() -> None:
     for item in args.overrides:
         name, _, value = item.partition("=")
         overrides[name] = ast.literal_eval(value)
-    out = args.out or Path(__file__).parent / "results" / "flow_stalls_cpu.json"
+    name = "flow_stalls_cpu" + ("" if args.actuator == "surface_flow" else f"_{args.actuator}")
+    out = args.out or Path(__file__).parent / "results" / f"{name}.json"
     config = evaluation_scene(
         TerraShiftConfig.preset(
             "pretrain",
-            actuator="surface_flow",
+            actuator=args.actuator,
             column_shape="box",
             action_mode=args.action_mode,
             count_surface_work=True,
@@ -142,7 +145,7 @@ def main() -> None:
     payload = {
         "benchmark": "flow_stalls",
         **run_header(torch.device("cpu")),
-        "scene": f"pretrain, surface_flow, box columns, {args.action_mode} actions, no respawn",
+        "scene": f"pretrain, {args.actuator}, box columns, {args.action_mode} actions, no respawn",
         "overrides": overrides,
         "episodes_per_seed": args.num_envs,
         "seeds": args.seeds,

@@ -1,4 +1,4 @@
-"""flow_stalls.py: the surface flow's heuristic with and without steering clear."""
+"""flow_stalls.py: the sliding families' heuristic with and without steering clear."""
 
 import math
 import sys
@@ -28,10 +28,11 @@ def test_stored_spin_of_a_sphere_rolling_in_place_is_minus_two_fifths_of_the_flo
 
 
 @pytest.mark.parametrize("clearance", [None, 2.0])
-def test_every_metric_is_a_count_or_share_in_range(clearance):
+@pytest.mark.parametrize("actuator", ["surface_flow", "rotors"])
+def test_every_metric_is_a_count_or_share_in_range(actuator, clearance):
     config = evaluation_scene(
         TerraShiftConfig(
-            actuator="surface_flow",
+            actuator=actuator,
             column_shape="box",
             action_mode="shape",
             count_surface_work=True,
