@@ -304,21 +304,6 @@ def test_flow_heuristic_steers_clear_of_another_sphere_and_stops_short_of_one_ah
     torch.testing.assert_close(unsteered(with_angle(td, 0.0))[GROUP, "action"][0, 0], alone)
 
 
-def test_flow_heuristic_keeps_more_spheres_than_it_did_without_steering_clear():
-    """Sixteen evaluation episodes on box columns: steering the spheres clear of each other
-    delivers nearly all of them, driving each straight at its goal about seven in ten (a
-    sphere that the flow presses against another ends rolling in place)."""
-    cfg = TerraShiftConfig(
-        actuator="surface_flow", column_shape="box", respawn=False, max_episode_steps=160
-    )
-    goals = {}
-    for clearance in (None, 2.0):
-        env = TerraShiftEnv(cfg, num_envs=16, seed=0)
-        scores = evaluate(env, ScriptedHeuristicPolicy(cfg, clearance=clearance), progress=False)
-        goals[clearance] = scores["goal_fraction"]
-    assert goals[2.0] >= 0.95 and goals[None] <= goals[2.0] - 0.2, goals
-
-
 def test_rotor_heuristic_spins_beside_the_sphere_with_its_rim_moving_towards_the_goal():
     """With the goal along +x, the first rotor stands one width (sigma = 1 cell) to the
     sphere's right seen along the way, at +y, spinning anticlockwise; the second as far to
@@ -337,10 +322,10 @@ def test_rotor_heuristic_spins_beside_the_sphere_with_its_rim_moving_towards_the
 def test_rotor_heuristic_steers_clear_of_another_sphere_and_stops_short_of_one_ahead():
     """Sphere 0 at (7, 7), its goal along +x at (12, 7), its two rotors (agents 0 and 2;
     agent 1 serves slot 1) in place on either side (shape actions: the amplitude action is
-    the spin set point). Another sphere in play
-    one diameter and a half ahead, a little to the left (+y), turns the way the rims drive it
-    clockwise, so both rotors move on along +x, and halves their spins; touching straight
-    ahead, it stops them; ``clearance=None`` leaves them spinning in place as without it."""
+    the spin set point). Another sphere in play one diameter and a half ahead, a little to
+    the left (+y), turns the way the rims drive it clockwise, so both rotors move on along +x,
+    and halves their spins; touching straight ahead, it stops them; ``clearance=None`` leaves
+    them spinning in place as without it."""
     cfg = TerraShiftConfig(
         actuator="rotors", action_mode="shape", num_agents=3, num_objects=2, num_goals=1
     )
@@ -362,18 +347,21 @@ def test_rotor_heuristic_steers_clear_of_another_sphere_and_stops_short_of_one_a
     torch.testing.assert_close(action((7.0 + diameter, 7.0), clearance=None), alone)
 
 
-def test_rotor_heuristic_keeps_more_spheres_than_it_did_without_steering_clear():
+@pytest.mark.parametrize(("actuator", "margin"), [("surface_flow", 0.2), ("rotors", 0.1)])
+def test_sliding_heuristic_keeps_more_spheres_than_it_did_without_steering_clear(actuator, margin):
     """Sixteen evaluation episodes on box columns: steering the spheres clear of each other
-    delivers nearly all of them, driving each straight at its goal about eight in ten."""
+    delivers nearly all of them, driving each straight at its goal about seven (surface flow)
+    or eight (rotors) in ten (a sphere that the surface presses against another ends rolling
+    in place)."""
     cfg = TerraShiftConfig(
-        actuator="rotors", column_shape="box", respawn=False, max_episode_steps=160
+        actuator=actuator, column_shape="box", respawn=False, max_episode_steps=160
     )
     goals = {}
     for clearance in (None, 2.0):
         env = TerraShiftEnv(cfg, num_envs=16, seed=0)
         scores = evaluate(env, ScriptedHeuristicPolicy(cfg, clearance=clearance), progress=False)
         goals[clearance] = scores["goal_fraction"]
-    assert goals[2.0] >= 0.95 and goals[None] <= goals[2.0] - 0.1, goals
+    assert goals[2.0] >= 0.95 and goals[None] <= goals[2.0] - margin, goals
 
 
 @pytest.mark.parametrize("actuator", sorted(ACTUATORS))
