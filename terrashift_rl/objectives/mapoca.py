@@ -40,10 +40,16 @@ from torchrl.objectives.value.functional import (
 
 from terrashift_rl.objectives.normalization import ValueNormalizer
 
-__all__ = ["MAPOCALoss", "MAPOCAValueEstimator"]
+__all__ = ["AUTO_PIECE_ELEMENTS", "MAPOCALoss", "MAPOCAValueEstimator"]
 
 _ADVANTAGE_STD_EPS = 1e-8
 """Added to the standard deviation when normalising advantages (as ML-Agents does)."""
+
+AUTO_PIECE_ELEMENTS = 1024
+"""Batch elements per piece of the value-estimation pass with ``max_batch="auto"``: about a
+mini-batch's worth, so that the pass holds about what a mini-batch step holds, however large
+the collected batch. On one CPU thread pieces of 400 to 1,000 elements run the pass faster
+than one pass over 6,000 (docs/benchmarks.md, "Loss speed")."""
 
 _KEY_CONTENTS = {
     "action": "the agents' actions at collection, [*B, K, A] ([*B, K] for discrete actions)",
@@ -86,6 +92,11 @@ class MAPOCAValueEstimator:
     ``data["next"]`` only at episode ends and the last step: exact for collected trajectories,
     where ``data["next"]`` at step t is the root of step t + 1, and one network pass cheaper.
 
+    The networks run in pieces of whole rows of the leading batch dim (``max_batch``): by
+    default rows that hold at most :data:`AUTO_PIECE_ELEMENTS` elements, so that the pass's
+    memory does not grow with the collected batch; in step mode every element is independent,
+    so the pieces give the same values as one pass.
+
     The pass reads nothing back to the host (on CUDA, every read waits for the device), except,
     with ``reuse_root_values``, how many states follow an episode end: the size of the networks'
     second batch.
@@ -100,6 +111,8 @@ class MAPOCAValueEstimator:
             an episode, as in collected data: the GAE value target is then the TD(λ) return.
         gamma: discount γ.
         lmbda: λ of the λ-returns.
+        max_batch: rows of the leading batch dim per piece of the networks' passes, ``"auto"``
+            (rows of at most :data:`AUTO_PIECE_ELEMENTS` elements) or ``None`` (one pass).
         reuse_root_values: whether V(s_{t+1}) is read from step t + 1 within episodes.
     """
 
@@ -110,11 +123,15 @@ class MAPOCAValueEstimator:
         value_type: ValueEstimators,
         gamma: float,
         lmbda: float,
-        max_batch: int | None = None,
+        max_batch: int | Literal["auto"] | None = "auto",
         reuse_root_values: bool = False,
     ) -> None:
-        if max_batch is not None and max_batch < 1:
-            raise ValueError(f"max_batch must be a positive integer or None, got {max_batch}")
+        if max_batch not in ("auto", None) and (
+            isinstance(max_batch, bool) or not isinstance(max_batch, int) or max_batch < 1
+        ):
+            raise ValueError(
+                f"max_batch must be a positive integer, 'auto' or None, got {max_batch!r}"
+            )
         self.loss = loss
         self.value_type = value_type
         self.gamma = gamma
@@ -125,7 +142,7 @@ class MAPOCAValueEstimator:
     def __repr__(self) -> str:
         return (
             f"{type(self).__name__}(value_type={self.value_type.name}, gamma={self.gamma}, "
-            f"lmbda={self.lmbda})"
+            f"lmbda={self.lmbda}, max_batch={self.max_batch!r})"
         )
 
     @torch.no_grad()
@@ -164,7 +181,9 @@ class MAPOCAValueEstimator:
         # hidden states exactly, also across episode boundaries.
         # the networks run on pieces of at most as many elements as max_batch rows hold
         elements = None
-        if self.max_batch is not None:
+        if self.max_batch == "auto":
+            elements = AUTO_PIECE_ELEMENTS
+        elif self.max_batch is not None:
             elements = self.max_batch * math.prod(root.batch_size[1:])
         with (
             set_exploration_type(ExplorationType.DETERMINISTIC),
@@ -685,7 +704,7 @@ class MAPOCALoss(LossModule):
         *,
         gamma: float = 0.99,
         lmbda: float = 0.95,
-        max_batch: int | None = None,
+        max_batch: int | Literal["auto"] | None = "auto",
         reuse_root_values: bool = False,
     ) -> MAPOCALoss:
         """Sets the value-estimation pass, reachable as ``loss.value_estimator``.
@@ -698,7 +717,8 @@ class MAPOCALoss(LossModule):
             lmbda: λ of the λ-returns.
             max_batch: run the networks on at most as many elements at a time as this many
                 rows of the leading batch dim hold (bounds memory; the results are the same);
-                None runs them at once.
+                ``"auto"`` (the default) on rows that hold at most :data:`AUTO_PIECE_ELEMENTS`
+                elements (at least one row), about a mini-batch's worth; ``None`` at once.
             reuse_root_values: read V(s_{t+1}) from step t + 1 within episodes and run the
                 networks on ``"next"`` only at episode ends and the last step; exact for
                 collected trajectories (see :class:`MAPOCAValueEstimator`).
@@ -984,6 +1004,9 @@ class MAPOCALoss(LossModule):
             flag = flag | ~agent_mask.unsqueeze(-1)
         return flag.all(-2)
 
+    # Python-side bookkeeping: under torch.compile it runs eagerly between the loss's graphs
+    # (tracing it would recompile the loss whenever the record changes)
+    @torch.compiler.disable
     def _watch_backward(self, loss_critic: torch.Tensor, loss_baseline: torch.Tensor) -> None:
         """Records which of the two critic terms the next backward pass goes through."""
         if not (loss_critic.requires_grad and loss_baseline.requires_grad):
@@ -993,6 +1016,7 @@ class MAPOCALoss(LossModule):
         loss_baseline.register_hook(functools.partial(_mark_reached, reached, "loss_baseline"))
         self._backward_reached = reached
 
+    @torch.compiler.disable
     def _warn_if_baseline_left_out(self) -> None:
         """Warns once if a backward pass went through ``loss_critic`` but not ``loss_baseline``:
         a MAPPO loop's sum, under which the baselines, and so the advantages, never learn."""
