@@ -845,7 +845,6 @@ class MAPOCALoss(LossModule):
 
         loss_critic = self.value_coeff * loss_critic
         loss_baseline = self.baseline_coeff * loss_baseline
-        self._watch_backward(loss_critic, loss_baseline)
         out = TensorDict(
             {
                 "loss_objective": loss_objective,
@@ -886,6 +885,7 @@ class MAPOCALoss(LossModule):
             if value_clip_fraction is not None:
                 out.set("value_clip_fraction", value_clip_fraction)
                 out.set("baseline_clip_fraction", baseline_clip_fraction)
+        self._watch_backward(out)
         return out
 
     def _run_critics(
@@ -1004,16 +1004,24 @@ class MAPOCALoss(LossModule):
             flag = flag | ~agent_mask.unsqueeze(-1)
         return flag.all(-2)
 
-    # Python-side bookkeeping: under torch.compile it runs eagerly between the loss's graphs
-    # (tracing it would recompile the loss whenever the record changes)
+    # Python-side bookkeeping: under torch.compile it runs eagerly after the loss's graph
+    # (traced, it would recompile the loss whenever the record changes)
     @torch.compiler.disable
-    def _watch_backward(self, loss_critic: torch.Tensor, loss_baseline: torch.Tensor) -> None:
-        """Records which of the two critic terms the next backward pass goes through."""
-        if not (loss_critic.requires_grad and loss_baseline.requires_grad):
+    def _watch_backward(self, out: TensorDict) -> None:
+        """Records which of the two critic terms of ``out`` the next backward pass goes through.
+
+        Each term is replaced by a view whose hook records it: an eager view, which only a
+        backward pass from the term itself reaches (a compiled graph's backward computes the
+        gradient of every output, used or not, and would fire a hook on the term itself).
+        """
+        terms = ("loss_critic", "loss_baseline")
+        if not all(out[name].requires_grad for name in terms):
             return
-        reached = {"loss_critic": False, "loss_baseline": False}
-        loss_critic.register_hook(functools.partial(_mark_reached, reached, "loss_critic"))
-        loss_baseline.register_hook(functools.partial(_mark_reached, reached, "loss_baseline"))
+        reached = dict.fromkeys(terms, False)
+        for name in terms:
+            term = out[name].view_as(out[name])
+            term.register_hook(functools.partial(_mark_reached, reached, name))
+            out.set(name, term)
         self._backward_reached = reached
 
     @torch.compiler.disable
