@@ -282,7 +282,8 @@ def parts(
 ) -> dict[str, float]:
     """Milliseconds of the parts of one mini-batch step, each timed apart (forward and backward;
     "loss terms" is the step less the networks and the optimiser), and of the estimation pass
-    (its critics on the collected steps and on the next steps; "returns" is the rest)."""
+    (its critics on the collected steps and on the next steps, in its pieces; "returns" is the
+    rest)."""
     batch = estimate(loss, collected.clone())
     samples = batch.reshape(-1)[: args.minibatch]
 
@@ -328,13 +329,14 @@ def parts(
     with torch.no_grad():
         ms["estimation"] = milliseconds(lambda: estimate(loss, collected.clone()))
         if isinstance(loss, MAPOCALoss):
-
-            def critics() -> None:
-                loss.baseline_network(loss.value_network(root.copy()))
-
-            ms["estimation: critics (collected)"] = milliseconds(critics)
+            # in the pieces the estimation pass runs them in
+            estimator = loss.value_estimator
+            elements = estimator._piece_elements(root)
+            ms["estimation: critics (collected)"] = milliseconds(
+                lambda: estimator._critics(root.copy(), with_baseline=True, elements=elements)
+            )
             ms["estimation: critics (next)"] = milliseconds(
-                lambda: loss.value_network(next_step.copy())
+                lambda: estimator._critics(next_step.copy(), with_baseline=False, elements=elements)
             )
         else:
             ms["estimation: critics (collected)"] = milliseconds(

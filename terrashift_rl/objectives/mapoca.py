@@ -179,12 +179,7 @@ class MAPOCAValueEstimator:
         # Step mode: every element runs from the recurrent state stored with it at collection
         # (and "next" from the state stored after the step), which reproduces the collection's
         # hidden states exactly, also across episode boundaries.
-        # the networks run on pieces of at most as many elements as max_batch rows hold
-        elements = None
-        if self.max_batch == "auto":
-            elements = AUTO_PIECE_ELEMENTS
-        elif self.max_batch is not None:
-            elements = self.max_batch * math.prod(root.batch_size[1:])
+        elements = self._piece_elements(root)
         with (
             set_exploration_type(ExplorationType.DETERMINISTIC),
             set_recurrent_mode(False),
@@ -266,6 +261,15 @@ class MAPOCAValueEstimator:
         tensordict.set(keys.baseline, stored_baseline)
         tensordict.set(keys.advantage, advantage)
         return tensordict
+
+    def _piece_elements(self, tensordict: TensorDictBase) -> int | None:
+        """How many elements of ``tensordict`` a piece of the networks' passes holds at most
+        (``None``: all)."""
+        if self.max_batch == "auto":
+            return AUTO_PIECE_ELEMENTS
+        if self.max_batch is None:
+            return None
+        return self.max_batch * math.prod(tensordict.batch_size[1:])
 
     def _critics(
         self, tensordict: TensorDictBase, *, with_baseline: bool, elements: int | None
