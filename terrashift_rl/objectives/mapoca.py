@@ -48,8 +48,7 @@ _ADVANTAGE_STD_EPS = 1e-8
 AUTO_PIECE_ELEMENTS = 1024
 """Batch elements per piece of the value-estimation pass with ``max_batch="auto"``: about a
 mini-batch's worth, so that the pass holds about what a mini-batch step holds, however large
-the collected batch. On one CPU thread pieces of 400 to 1,000 elements run the pass faster
-than one pass over 6,000 (docs/benchmarks.md, "Loss speed")."""
+the collected batch (docs/benchmarks.md, "Loss speed")."""
 
 _KEY_CONTENTS = {
     "action": "the agents' actions at collection, [*B, K, A] ([*B, K] for discrete actions)",

@@ -341,14 +341,14 @@ def test_the_compiled_loss_gives_the_eager_results_and_compiles_once():
     counter = CompileCounterWithBackend("aot_eager")
     eager, compiled = make_loss(), make_loss()
     compile_as_the_readme_does(compiled, counter)
-    optimisers = [torch.optim.Adam(loss.parameters(), lr=1e-2) for loss in (eager, compiled)]
+    pair = (eager, compiled)
+    optimisers = [torch.optim.Adam(loss.parameters(), lr=1e-2) for loss in pair]
     for iteration in range(2):
-        frames = [eager.value_estimator(collect(eager, seed=iteration))]
-        frames.append(compiled.value_estimator(collect(compiled, seed=iteration)))
+        batches = [loss.value_estimator(collect(loss, seed=iteration)) for loss in pair]
         for key in ESTIMATES:
-            torch.testing.assert_close(frames[1][key], frames[0][key])
+            torch.testing.assert_close(batches[1][key], batches[0][key])
         results = []
-        for loss, optimiser, data in zip((eager, compiled), optimisers, frames, strict=True):
+        for loss, optimiser, data in zip(pair, optimisers, batches, strict=True):
             losses = loss(data.reshape(-1))
             optimiser.zero_grad()
             sum(value for key, value in losses.items() if key.startswith("loss_")).backward()
@@ -357,9 +357,9 @@ def test_the_compiled_loss_gives_the_eager_results_and_compiles_once():
         torch.testing.assert_close(results[1][0], results[0][0])
         torch.testing.assert_close(results[1][1], results[0][1])
         if iteration == 0:
-            frames_compiled = counter.frame_count
-    assert frames_compiled > 0
-    assert counter.frame_count == frames_compiled  # the second update recompiled nothing
+            compiled_frames = counter.frame_count
+    assert compiled_frames > 0
+    assert counter.frame_count == compiled_frames  # the second update recompiled nothing
 
 
 def test_the_compiled_loss_still_warns_of_a_baseline_left_out():
