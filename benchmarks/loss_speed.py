@@ -12,14 +12,15 @@ thread by default (``--threads``), and memory and time are measured in separate 
 
 Time per update is the median of ``--repeats`` updates after one warm-up, wall-clock and
 processor time; the ratios are of processor time on CPU (steadier where other work shares the
-processor), of wall-clock time on CUDA. Peak memory is what an update holds at most beyond
-what was there before it, measured on the second update (the first loads code and creates the
-optimiser's state): on CUDA ``torch.cuda.max_memory_allocated``; on CPU the peak of the
-process's resident set (``VmHWM``, reset through ``/proc/self/clear_refs``) less the resident
-set before the update, with glibc giving back the blocks of 64 KiB or more when they are
-freed. With ``--parts`` it also times (same clock) the parts of one mini-batch step apart
-(forward and backward of each network, the rest of the loss, the optimiser) and of the
-value-estimation pass.
+processor), of wall-clock time on CUDA. The first update of the process (wall-clock, "first
+s") is reported apart: with ``torch.compile`` it holds the compilation. Peak memory is what an
+update holds at most beyond what was there before it, measured on the second update (the first
+loads code and creates the optimiser's state): on CUDA ``torch.cuda.max_memory_allocated``;
+on CPU the peak of the process's resident set (``VmHWM``, reset through
+``/proc/self/clear_refs``) less the resident set before the update, with glibc giving back the
+blocks of 64 KiB or more when they are freed. With ``--parts`` it also times (same clock) the
+parts of one mini-batch step apart (forward and backward of each network, the rest of the loss,
+the optimiser) and of the value-estimation pass.
 
     python benchmarks/loss_speed.py                      # CPU, K = 4 and 16
     python benchmarks/loss_speed.py --device cuda --parts
@@ -51,9 +52,12 @@ from terrashift_rl.objectives import MAPOCALoss
 OBSERVATION_DIM, ACTION_DIM = 10, 2
 GROUP = "agents"
 OBSERVATION, ACTION = (GROUP, "observation"), (GROUP, "action")
-METHODS = ("MAPOCA", "MAPOCA, pieces", "MAPPO")
-""""MAPOCA, pieces" runs the estimation pass on a mini-batch's frames at a time (its
-``max_batch``): the same results in less memory."""
+METHODS = ("MAPOCA", "MAPOCA, one pass", "MAPOCA, compiled", "MAPPO")
+""""MAPOCA" runs the estimation pass in its default pieces (``max_batch="auto"``), "MAPOCA,
+one pass" on the whole batch at once (``max_batch=None``): the same results in more memory.
+"MAPOCA, compiled" is the default with the README's ``torch.compile`` recipe (the critics'
+networks and the loss); its first update, which compiles, is reported apart."""
+DEFAULT_METHODS = ("MAPOCA", "MAPOCA, one pass", "MAPPO")
 
 
 def make_actor() -> ProbabilisticActor:
@@ -101,9 +105,13 @@ def make_loss(method: str, num_agents: int, args: argparse.Namespace) -> LossMod
         )
         loss = MAPPOLoss(actor, critic)
         loss.set_keys(value=(GROUP, "state_value"), reward=(GROUP, "reward"))
-    if method == "MAPOCA, pieces":
-        estimator["max_batch"] = max(1, args.minibatch // args.steps)  # rows of env steps
+    if method == "MAPOCA, one pass":
+        estimator["max_batch"] = None
     loss.make_value_estimator(loss.default_value_estimator, **estimator)
+    if method == "MAPOCA, compiled":
+        value.module.compile()
+        baseline.module.compile()
+        loss.compile()
     return loss
 
 
@@ -167,9 +175,12 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def _timed(function, device: torch.device, repeats: int) -> tuple[float, float]:
-    """Median wall-clock and processor seconds of ``repeats`` calls after one warm-up."""
-    function()
+def _timed(
+    function, device: torch.device, repeats: int, *, warmup: bool = True
+) -> tuple[float, float]:
+    """Median wall-clock and processor seconds of ``repeats`` calls (after one warm-up)."""
+    if warmup:
+        function()
     wall, processor = [], []
     for _ in range(repeats):
         _sync(device)
@@ -222,6 +233,12 @@ def peak_memory(method: str, num_agents: int, args: argparse.Namespace) -> float
 def timing(method: str, num_agents: int, args: argparse.Namespace) -> dict:
     """Time per update (and of its parts)."""
     loss, optimiser, collected, device = setup(method, num_agents, args)
+    first_wall, first_processor = _timed(
+        lambda: update(loss, optimiser, collected.clone(), args.minibatch),
+        device,
+        repeats=1,
+        warmup=False,
+    )
     wall, processor = _timed(
         lambda: update(loss, optimiser, collected.clone(), args.minibatch), device, args.repeats
     )
@@ -229,6 +246,8 @@ def timing(method: str, num_agents: int, args: argparse.Namespace) -> dict:
         "method": method,
         "agents": num_agents,
         "parameters": sum(p.numel() for p in loss.parameters()),
+        "first_update_s": first_wall,
+        "first_update_processor_s": first_processor,
         "update_s": wall,
         "update_processor_s": processor,
     }
@@ -263,7 +282,8 @@ def parts(
 ) -> dict[str, float]:
     """Milliseconds of the parts of one mini-batch step, each timed apart (forward and backward;
     "loss terms" is the step less the networks and the optimiser), and of the estimation pass
-    (its critics on the collected steps and on the next steps; "returns" is the rest)."""
+    (its critics on the collected steps and on the next steps, in its pieces; "returns" is the
+    rest)."""
     batch = estimate(loss, collected.clone())
     samples = batch.reshape(-1)[: args.minibatch]
 
@@ -309,13 +329,14 @@ def parts(
     with torch.no_grad():
         ms["estimation"] = milliseconds(lambda: estimate(loss, collected.clone()))
         if isinstance(loss, MAPOCALoss):
-
-            def critics() -> None:
-                loss.baseline_network(loss.value_network(root.copy()))
-
-            ms["estimation: critics (collected)"] = milliseconds(critics)
+            # in the pieces the estimation pass runs them in
+            estimator = loss.value_estimator
+            elements = estimator._piece_elements(root)
+            ms["estimation: critics (collected)"] = milliseconds(
+                lambda: estimator._critics(root.copy(), with_baseline=True, elements=elements)
+            )
             ms["estimation: critics (next)"] = milliseconds(
-                lambda: loss.value_network(next_step.copy())
+                lambda: estimator._critics(next_step.copy(), with_baseline=False, elements=elements)
             )
         else:
             ms["estimation: critics (collected)"] = milliseconds(
@@ -336,7 +357,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--agents", type=int, nargs="+", default=[4, 16])
-    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), choices=METHODS)
     parser.add_argument("--envs", type=int, default=60)
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--minibatch", type=int, default=400)
@@ -357,8 +378,8 @@ def main() -> None:
     print(
         f"{results['device']}, {args.envs} x {args.steps} frames, mini-batches of {args.minibatch}"
     )
-    header = ("K", "method", "params", "wall s", "cpu s", "peak MB", "time x", "mem x")
-    print("{:>3s} {:14s} {:>7s} {:>8s} {:>8s} {:>8s} {:>7s} {:>6s}".format(*header))
+    header = ("K", "method", "params", "first s", "wall s", "cpu s", "peak MB", "time x", "mem x")
+    print("{:>3s} {:16s} {:>7s} {:>8s} {:>8s} {:>8s} {:>8s} {:>7s} {:>6s}".format(*header))
     # on a CPU shared with other work, the processor time the update took is the steadier
     clock = "update_processor_s" if device.type == "cpu" else "update_s"
     results["time_ratio_of"] = clock
@@ -372,7 +393,8 @@ def main() -> None:
             row["memory_ratio"] = row["peak_memory_mb"] / rows["MAPPO"]["peak_memory_mb"]
             results["rows"].append(row)
             print(
-                f"{num_agents:3d} {method:14s} {row['parameters']:7d} {row['update_s']:8.3f} "
+                f"{num_agents:3d} {method:16s} {row['parameters']:7d} "
+                f"{row['first_update_s']:8.3f} {row['update_s']:8.3f} "
                 f"{row['update_processor_s']:8.3f} {row['peak_memory_mb']:8.1f} "
                 f"{row['time_ratio']:7.2f} {row['memory_ratio']:6.2f}"
             )

@@ -40,10 +40,15 @@ from torchrl.objectives.value.functional import (
 
 from terrashift_rl.objectives.normalization import ValueNormalizer
 
-__all__ = ["MAPOCALoss", "MAPOCAValueEstimator"]
+__all__ = ["AUTO_PIECE_ELEMENTS", "MAPOCALoss", "MAPOCAValueEstimator"]
 
 _ADVANTAGE_STD_EPS = 1e-8
 """Added to the standard deviation when normalising advantages (as ML-Agents does)."""
+
+AUTO_PIECE_ELEMENTS = 1024
+"""Batch elements per piece of the value-estimation pass with ``max_batch="auto"``: about a
+mini-batch's worth, so that the pass holds about what a mini-batch step holds, however large
+the collected batch (docs/benchmarks.md, "Loss speed")."""
 
 _KEY_CONTENTS = {
     "action": "the agents' actions at collection, [*B, K, A] ([*B, K] for discrete actions)",
@@ -86,6 +91,11 @@ class MAPOCAValueEstimator:
     ``data["next"]`` only at episode ends and the last step: exact for collected trajectories,
     where ``data["next"]`` at step t is the root of step t + 1, and one network pass cheaper.
 
+    The networks run in pieces of whole rows of the leading batch dim (``max_batch``): by
+    default rows that hold at most :data:`AUTO_PIECE_ELEMENTS` elements, so that the pass's
+    memory does not grow with the collected batch; in step mode every element is independent,
+    so the pieces give the same values as one pass.
+
     The pass reads nothing back to the host (on CUDA, every read waits for the device), except,
     with ``reuse_root_values``, how many states follow an episode end: the size of the networks'
     second batch.
@@ -100,6 +110,8 @@ class MAPOCAValueEstimator:
             an episode, as in collected data: the GAE value target is then the TD(λ) return.
         gamma: discount γ.
         lmbda: λ of the λ-returns.
+        max_batch: rows of the leading batch dim per piece of the networks' passes, ``"auto"``
+            (rows of at most :data:`AUTO_PIECE_ELEMENTS` elements) or ``None`` (one pass).
         reuse_root_values: whether V(s_{t+1}) is read from step t + 1 within episodes.
     """
 
@@ -110,11 +122,15 @@ class MAPOCAValueEstimator:
         value_type: ValueEstimators,
         gamma: float,
         lmbda: float,
-        max_batch: int | None = None,
+        max_batch: int | Literal["auto"] | None = "auto",
         reuse_root_values: bool = False,
     ) -> None:
-        if max_batch is not None and max_batch < 1:
-            raise ValueError(f"max_batch must be a positive integer or None, got {max_batch}")
+        if max_batch not in ("auto", None) and (
+            isinstance(max_batch, bool) or not isinstance(max_batch, int) or max_batch < 1
+        ):
+            raise ValueError(
+                f"max_batch must be a positive integer, 'auto' or None, got {max_batch!r}"
+            )
         self.loss = loss
         self.value_type = value_type
         self.gamma = gamma
@@ -125,7 +141,7 @@ class MAPOCAValueEstimator:
     def __repr__(self) -> str:
         return (
             f"{type(self).__name__}(value_type={self.value_type.name}, gamma={self.gamma}, "
-            f"lmbda={self.lmbda})"
+            f"lmbda={self.lmbda}, max_batch={self.max_batch!r})"
         )
 
     @torch.no_grad()
@@ -162,10 +178,7 @@ class MAPOCAValueEstimator:
         # Step mode: every element runs from the recurrent state stored with it at collection
         # (and "next" from the state stored after the step), which reproduces the collection's
         # hidden states exactly, also across episode boundaries.
-        # the networks run on pieces of at most as many elements as max_batch rows hold
-        elements = None
-        if self.max_batch is not None:
-            elements = self.max_batch * math.prod(root.batch_size[1:])
+        elements = self._piece_elements(root)
         with (
             set_exploration_type(ExplorationType.DETERMINISTIC),
             set_recurrent_mode(False),
@@ -247,6 +260,15 @@ class MAPOCAValueEstimator:
         tensordict.set(keys.baseline, stored_baseline)
         tensordict.set(keys.advantage, advantage)
         return tensordict
+
+    def _piece_elements(self, tensordict: TensorDictBase) -> int | None:
+        """How many elements of ``tensordict`` a piece of the networks' passes holds at most
+        (``None``: all)."""
+        if self.max_batch == "auto":
+            return AUTO_PIECE_ELEMENTS
+        if self.max_batch is None:
+            return None
+        return self.max_batch * math.prod(tensordict.batch_size[1:])
 
     def _critics(
         self, tensordict: TensorDictBase, *, with_baseline: bool, elements: int | None
@@ -685,7 +707,7 @@ class MAPOCALoss(LossModule):
         *,
         gamma: float = 0.99,
         lmbda: float = 0.95,
-        max_batch: int | None = None,
+        max_batch: int | Literal["auto"] | None = "auto",
         reuse_root_values: bool = False,
     ) -> MAPOCALoss:
         """Sets the value-estimation pass, reachable as ``loss.value_estimator``.
@@ -698,7 +720,8 @@ class MAPOCALoss(LossModule):
             lmbda: λ of the λ-returns.
             max_batch: run the networks on at most as many elements at a time as this many
                 rows of the leading batch dim hold (bounds memory; the results are the same);
-                None runs them at once.
+                ``"auto"`` (the default) on rows that hold at most :data:`AUTO_PIECE_ELEMENTS`
+                elements (at least one row), about a mini-batch's worth; ``None`` at once.
             reuse_root_values: read V(s_{t+1}) from step t + 1 within episodes and run the
                 networks on ``"next"`` only at episode ends and the last step; exact for
                 collected trajectories (see :class:`MAPOCAValueEstimator`).
@@ -825,7 +848,6 @@ class MAPOCALoss(LossModule):
 
         loss_critic = self.value_coeff * loss_critic
         loss_baseline = self.baseline_coeff * loss_baseline
-        self._watch_backward(loss_critic, loss_baseline)
         out = TensorDict(
             {
                 "loss_objective": loss_objective,
@@ -866,6 +888,7 @@ class MAPOCALoss(LossModule):
             if value_clip_fraction is not None:
                 out.set("value_clip_fraction", value_clip_fraction)
                 out.set("baseline_clip_fraction", baseline_clip_fraction)
+        self._watch_backward(out)
         return out
 
     def _run_critics(
@@ -984,15 +1007,27 @@ class MAPOCALoss(LossModule):
             flag = flag | ~agent_mask.unsqueeze(-1)
         return flag.all(-2)
 
-    def _watch_backward(self, loss_critic: torch.Tensor, loss_baseline: torch.Tensor) -> None:
-        """Records which of the two critic terms the next backward pass goes through."""
-        if not (loss_critic.requires_grad and loss_baseline.requires_grad):
+    # Python-side bookkeeping: under torch.compile it runs eagerly after the loss's graph
+    # (traced, it would recompile the loss whenever the record changes)
+    @torch.compiler.disable
+    def _watch_backward(self, out: TensorDict) -> None:
+        """Records which of the two critic terms of ``out`` the next backward pass goes through.
+
+        Each term is replaced by a view whose hook records it: an eager view, which only a
+        backward pass from the term itself reaches (a compiled graph's backward computes the
+        gradient of every output, used or not, and would fire a hook on the term itself).
+        """
+        terms = ("loss_critic", "loss_baseline")
+        if not all(out[name].requires_grad for name in terms):
             return
-        reached = {"loss_critic": False, "loss_baseline": False}
-        loss_critic.register_hook(functools.partial(_mark_reached, reached, "loss_critic"))
-        loss_baseline.register_hook(functools.partial(_mark_reached, reached, "loss_baseline"))
+        reached = dict.fromkeys(terms, False)
+        for name in terms:
+            term = out[name].view_as(out[name])
+            term.register_hook(functools.partial(_mark_reached, reached, name))
+            out.set(name, term)
         self._backward_reached = reached
 
+    @torch.compiler.disable
     def _warn_if_baseline_left_out(self) -> None:
         """Warns once if a backward pass went through ``loss_critic`` but not ``loss_baseline``:
         a MAPPO loop's sum, under which the baselines, and so the advantages, never learn."""

@@ -16,7 +16,7 @@ from torchrl.modules import (
 )
 from torchrl.objectives import ValueEstimators
 
-from terrashift_rl.objectives import MAPOCALoss, ValueNormalizer
+from terrashift_rl.objectives import MAPOCALoss, ValueNormalizer, mapoca
 
 OBS_DIM, ACTION_DIM, EMBED_DIM = 3, 2, 4
 N_ENVS, N_STEPS, N_AGENTS = 2, 3, 2
@@ -446,6 +446,40 @@ def test_value_estimation_in_pieces_gives_the_same_results(reuse_root_values):
     assert sizes == expected
     with pytest.raises(ValueError, match="max_batch"):
         loss.make_value_estimator(ValueEstimators.GAE, max_batch=0)
+
+
+@pytest.mark.parametrize(
+    ("piece_elements", "piece_sizes"),
+    [(6, [6]), (4, [3, 3]), (2, [3, 3])],  # the whole batch; one env's steps; at least a row
+)
+def test_value_estimation_runs_in_bounded_pieces_by_default(
+    monkeypatch, piece_elements, piece_sizes
+):
+    # By default the networks run on whole rows that hold at most AUTO_PIECE_ELEMENTS elements:
+    # the same results as one pass.
+    monkeypatch.setattr(mapoca, "AUTO_PIECE_ELEMENTS", piece_elements)
+    modules = make_modules()
+    actor, value, baseline, _ = wrap(modules)
+    sizes = []  # elements of every call of the value network
+    hook = modules["value"].register_forward_pre_hook(
+        lambda module, args: sizes.append(args[0].shape[:-2].numel())
+    )
+    whole, pieces = make_batch(actor), make_batch(actor)
+    loss = make_loss(actor, value, baseline)
+    one_pass = make_loss(actor, value, baseline).make_value_estimator(
+        ValueEstimators.GAE, gamma=GAMMA, lmbda=LMBDA, max_batch=None
+    )
+    one_pass.value_estimator(whole)
+    assert sizes == [N_ENVS * N_STEPS] * 2  # the states, then the next states
+    sizes.clear()
+    assert loss.value_estimator.max_batch == "auto"
+    loss.value_estimator(pieces)
+    hook.remove()
+    assert sizes == piece_sizes * 2
+    for key in ("state_value", "value_target", ("agents", "baseline"), ("agents", "advantage")):
+        torch.testing.assert_close(pieces[key], whole[key], **TOLERANCE)
+    with pytest.raises(ValueError, match="max_batch"):
+        loss.make_value_estimator(ValueEstimators.GAE, max_batch="all")
 
 
 @pytest.mark.parametrize("value_type", [ValueEstimators.GAE, ValueEstimators.TDLambda])

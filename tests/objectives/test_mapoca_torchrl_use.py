@@ -12,6 +12,7 @@ import torch
 from tensordict import TensorDict, TensorDictParams
 from tensordict.nn import TensorDictModule
 from torch import nn
+from torch._dynamo.testing import CompileCounterWithBackend
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import (
     IndependentNormal,
@@ -324,3 +325,44 @@ def test_defaults_are_clip_ppo_loss_s_but_for_the_three_the_docstring_explains()
         0.5,
         8.0,
     )
+
+
+def compile_as_the_readme_does(loss: MAPOCALoss, backend) -> None:
+    """The README's torch.compile recipe: the critics' networks (for the estimation pass) and
+    the loss (for the mini-batches)."""
+    loss.value_network.module.compile(backend=backend)
+    loss.baseline_network.module.compile(backend=backend)
+    loss.compile(backend=backend)
+
+
+def test_the_compiled_loss_gives_the_eager_results_and_compiles_once():
+    # TorchDynamo and AOTAutograd as torch.compile runs them, without Inductor's code
+    # generation (a minute on the CPU): the graphs' results are the eager ones.
+    counter = CompileCounterWithBackend("aot_eager")
+    eager, compiled = make_loss(), make_loss()
+    compile_as_the_readme_does(compiled, counter)
+    pair = (eager, compiled)
+    optimisers = [torch.optim.Adam(loss.parameters(), lr=1e-2) for loss in pair]
+    for iteration in range(2):
+        batches = [loss.value_estimator(collect(loss, seed=iteration)) for loss in pair]
+        for key in ESTIMATES:
+            torch.testing.assert_close(batches[1][key], batches[0][key])
+        results = []
+        for loss, optimiser, data in zip(pair, optimisers, batches, strict=True):
+            losses = loss(data.reshape(-1))
+            optimiser.zero_grad()
+            sum(value for key, value in losses.items() if key.startswith("loss_")).backward()
+            results.append((losses, [p.grad.clone() for p in loss.parameters()]))
+            optimiser.step()
+        torch.testing.assert_close(results[1][0], results[0][0])
+        torch.testing.assert_close(results[1][1], results[0][1])
+        if iteration == 0:
+            compiled_frames = counter.frame_count
+    assert compiled_frames > 0
+    assert counter.frame_count == compiled_frames  # the second update recompiled nothing
+
+
+def test_the_compiled_loss_still_warns_of_a_baseline_left_out():
+    loss = make_loss()
+    loss.compile(backend="aot_eager")
+    assert len(train(loss, ["loss_objective", "loss_critic", "loss_entropy"])) == 1
