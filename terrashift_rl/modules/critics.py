@@ -11,14 +11,13 @@ and a mean over the agents present, so they take any number of agents and ignore
 - :class:`CentralValueHead` and :class:`CounterfactualBaselineHead` are the same networks on the
   per-agent embeddings of TerraShift's shared trunk, sized by a :class:`TerraShiftModelConfig`;
   with ``critic_objects`` each first reads the object sequence that the critics alone are
-  given (:class:`ObjectReader`).
+  given (:class:`~terrashift_rl.modules.object_reader.ObjectReader`).
 - :class:`AttentionValue` and :class:`AttentionBaseline` are the plain ``nn.Module`` both
   kinds are built from, for inputs of another form (pass your own encoders).
 """
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 import torch
@@ -27,11 +26,9 @@ from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torch import Tensor, nn
 
-from terrashift_rl.modules import keys
 from terrashift_rl.modules.config import TerraShiftModelConfig
-from terrashift_rl.modules.entities import ObjectEncoder
 from terrashift_rl.modules.layers import ResidualSelfAttention, UpdateDropout, masked_mean
-from terrashift_rl.modules.trunk import TrunkLayer
+from terrashift_rl.modules.object_reader import ObjectReader, read_objects
 
 __all__ = [
     "AttentionBaseline",
@@ -40,7 +37,6 @@ __all__ = [
     "CentralValueHead",
     "CounterfactualBaseline",
     "CounterfactualBaselineHead",
-    "ObjectReader",
 ]
 
 
@@ -279,65 +275,11 @@ class AttentionBaseline(_AttentionPool):
         return self.mlp(masked_mean(sets, key_mask)).float()
 
 
-class ObjectReader(nn.Module):
-    """Agent embeddings that have read the object sequence: a critic's privileged view.
-
-    The objects' tokens (an :class:`~terrashift_rl.modules.entities.ObjectEncoder` of its own,
-    one token per object), then one :class:`~terrashift_rl.modules.trunk.TrunkLayer` with them
-    as its single token set: the agents attend to the objects, then to each other, then a
-    feed-forward block, each step residual.
-
-    Args:
-        config: network sizes (its object settings aside: one shared token per object).
-
-    Examples:
-        >>> reader = ObjectReader(TerraShiftModelConfig.small())
-        >>> reader(torch.randn(5, 8, 32), torch.randn(5, 4, 9)).shape
-        torch.Size([5, 8, 32])
-    """
-
-    def __init__(self, config: TerraShiftModelConfig) -> None:
-        super().__init__()
-        sizes = dataclasses.replace(config, object_tokens=False, relative_objects=False)
-        self.object_encoder = ObjectEncoder(sizes)
-        self.layer = TrunkLayer(sizes)
-
-    def forward(
-        self,
-        embedding: Tensor,
-        objects: Tensor,
-        objects_mask: Tensor | None = None,
-        agent_mask: Tensor | None = None,
-    ) -> Tensor:
-        """Embeddings [..., K, d] updated from objects [..., M, F] (mask [..., M], True =
-        active; None: all); absent agents (``agent_mask`` [..., K] False) are not attended."""
-        tokens = self.object_encoder(objects, objects_mask)
-        return self.layer(embedding, [tokens], [objects_mask], agent_mask)
-
-
-def _read_objects(
-    reader: ObjectReader | None,
-    embedding: Tensor,
-    objects: Tensor | None,
-    objects_mask: Tensor | None,
-    agent_mask: Tensor | None,
-) -> Tensor:
-    """``embedding`` after ``reader`` (if any) has read the privileged objects."""
-    if reader is None:
-        return embedding
-    if objects is None:
-        raise KeyError(
-            f"critics with critic_objects read {keys.PRIVILEGED_OBJECTS}, which the input "
-            "lacks: the scene hands it out with privileged_objects=true"
-        )
-    return reader(embedding, objects, objects_mask, agent_mask)
-
-
 class CentralValueHead(AttentionValue):
     """V(s) on the trunk's agent embeddings: residual self-attention, masked mean, MLP -> 1.
 
     With ``config.critic_objects`` the embeddings first read the privileged object sequence
-    (:class:`ObjectReader`).
+    (:class:`~terrashift_rl.modules.object_reader.ObjectReader`).
 
     Args:
         config: network sizes.
@@ -346,6 +288,7 @@ class CentralValueHead(AttentionValue):
         >>> head = CentralValueHead(TerraShiftModelConfig.small())
         >>> head(torch.randn(5, 8, 32)).shape
         torch.Size([5, 1])
+        >>> import dataclasses
         >>> config = dataclasses.replace(
         ...     TerraShiftModelConfig.small(), object_tokens=False, critic_objects=True)
         >>> CentralValueHead(config)(torch.randn(5, 8, 32), None, torch.randn(5, 4, 9)).shape
@@ -371,7 +314,7 @@ class CentralValueHead(AttentionValue):
     ) -> Tensor:
         """Value [..., 1] of embeddings [..., K, d]; ``objects`` [..., M, F] and their mask
         [..., M] are read with ``critic_objects`` (and required then)."""
-        features = _read_objects(self.object_reader, embedding, objects, objects_mask, agent_mask)
+        features = read_objects(self.object_reader, embedding, objects, objects_mask, agent_mask)
         return super().forward(features, agent_mask)
 
 
@@ -379,7 +322,7 @@ class CounterfactualBaselineHead(AttentionBaseline):
     """b_i on the trunk's agent embeddings e: g and f are linear maps d -> d and (d + A) -> d.
 
     With ``config.critic_objects`` the embeddings first read the privileged object sequence
-    (:class:`ObjectReader`, the head's own).
+    (:class:`~terrashift_rl.modules.object_reader.ObjectReader`, the head's own).
 
     Args:
         config: network sizes.
@@ -414,7 +357,7 @@ class CounterfactualBaselineHead(AttentionBaseline):
         """Baselines [..., K, 1] from embeddings [..., K, d] and actions [..., K, A];
         ``objects`` [..., M, F] and their mask [..., M] are read with ``critic_objects`` (and
         required then)."""
-        features = _read_objects(self.object_reader, embedding, objects, objects_mask, agent_mask)
+        features = read_objects(self.object_reader, embedding, objects, objects_mask, agent_mask)
         return super().forward(features, action, agent_mask)
 
 
