@@ -44,6 +44,7 @@ from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training import distributed
 from terrashift_rl.training.evaluation import evaluate_periodically
 from terrashift_rl.training.settings import CurriculumSettings
+from terrashift_rl.training.terrashift import check_scene
 from terrashift_rl.training.trainer import OnPolicyTrainer, TrainerHook
 
 __all__ = ["Curriculum", "CurriculumHook", "make_curriculum_env", "stage_scenes"]
@@ -261,6 +262,7 @@ def make_curriculum_env(
     (and a captured graph stays valid) through every advance, with the transforms the recurrent
     policy needs (``is_init`` and its state)."""
     target = curriculum.scenes[-1]
+    check_scene(target, networks)  # every stage observes as the target does
     base = MixedSceneEnv(
         *curriculum.mix(num_envs),
         num_agents=target.num_agents,

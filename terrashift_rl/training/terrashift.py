@@ -44,6 +44,7 @@ __all__ = [
     "SimulatorState",
     "StaggeredEpisodes",
     "action_medians",
+    "check_scene",
     "concentration_metrics",
     "episode_metrics",
     "make_trainer",
@@ -57,17 +58,8 @@ __all__ = [
 _RECOMPUTED_KEYS = (keys.AGENT_EMBEDDING,)
 
 
-def make_training_env(
-    env_config: TerraShiftConfig,
-    networks: TerraShiftNetworks,
-    *,
-    num_envs: int,
-    device: torch.device,
-    seed: int,
-) -> TransformedEnv:
-    """TerraShift with the transforms the recurrent policy needs: ``is_init`` and its state.
-
-    Refuses a scene that lacks an observation the networks read (the camera, the objects, the
+def check_scene(env_config: TerraShiftConfig, networks: TerraShiftNetworks) -> None:
+    """Refuses a scene that lacks an observation the networks read (the camera, the objects, the
     critics' privileged objects), or renders a camera or hands out privileged objects they do
     not read, naming the settings."""
     model = networks.config
@@ -91,6 +83,19 @@ def make_training_env(
                 "true, with env.observe_objects=false and model.object_tokens=false, or both "
                 "false)"
             )
+
+
+def make_training_env(
+    env_config: TerraShiftConfig,
+    networks: TerraShiftNetworks,
+    *,
+    num_envs: int,
+    device: torch.device,
+    seed: int,
+) -> TransformedEnv:
+    """TerraShift with the transforms the recurrent policy needs: ``is_init`` and its state;
+    the scene checked against the networks first (:func:`check_scene`)."""
+    check_scene(env_config, networks)
     base = TerraShiftEnv(env_config, num_envs=num_envs, device=device, seed=seed)
     primer = networks.make_tensordict_primer(env_config.num_agents)
     return TransformedEnv(base, Compose(InitTracker(), primer))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 from torchrl.envs import Compose, InitTracker, TransformedEnv
@@ -14,7 +16,7 @@ from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_network
 from terrashift_rl.objectives import ValueNormalizer
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training.algorithms import MAPOCAConfig
-from terrashift_rl.training.curriculum import Curriculum, stage_scenes
+from terrashift_rl.training.curriculum import Curriculum, make_curriculum_env, stage_scenes
 from terrashift_rl.training.settings import CurriculumSettings
 
 
@@ -255,3 +257,19 @@ def test_ma_pocas_loss_on_a_padded_scene_equals_its_loss_on_the_scene_alone():
     alone, padded = losses
     for term in ("loss_objective", "loss_critic", "loss_baseline", "loss_entropy"):
         torch.testing.assert_close(padded[term], alone[term], rtol=1e-4, atol=1e-6)
+
+
+def test_a_curriculum_scene_the_networks_cannot_read_is_refused_naming_the_settings():
+    """The curriculum's environments are checked against the networks as a single scene's are:
+    networks reading a camera on a target without one are refused before any env is built."""
+    target = TerraShiftConfig(grid_size=12, num_agents=3, num_objects=2, num_goals=2)
+    settings = CurriculumSettings(
+        stages=2, start_grid_size=8, start_num_agents=2, start_num_objects=1, mix=0.5
+    )
+    networks = make_terrashift_networks(
+        dataclasses.replace(TerraShiftModelConfig.small(), camera_channels=1)
+    )
+    with pytest.raises(ValueError, match="camera_channels=1 but env.camera_resolution=0"):
+        make_curriculum_env(
+            Curriculum(target, settings), networks, num_envs=4, device="cpu", seed=0
+        )
