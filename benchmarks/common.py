@@ -4,19 +4,44 @@ how a table is printed, and how results are written and read."""
 from __future__ import annotations
 
 import argparse
+import ast
 import csv
+import dataclasses
 import json
 import os
 import platform
 import shlex
 import sys
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from datetime import date
 from pathlib import Path
 
 import numpy as np
 import torch
 from omegaconf import OmegaConf
+
+
+def field_parser(config: type) -> Callable[[str], tuple[str, object]]:
+    """An argparse type: ``FIELD=VALUE`` with FIELD a field of the dataclass ``config`` and VALUE
+    a Python literal (``embed_dim=64``, ``cnn_channels=[8,16,16]``), parsed to ``(FIELD, value)``;
+    anything else refused naming the fields."""
+    fields = {field.name for field in dataclasses.fields(config)}
+
+    def parse(text: str) -> tuple[str, object]:
+        field, sep, value = text.partition("=")
+        if not sep or field not in fields:
+            raise argparse.ArgumentTypeError(
+                f"{text!r} is not FIELD=VALUE with FIELD one of {config.__name__}'s: "
+                + ", ".join(sorted(fields))
+            )
+        try:
+            return field, ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: {value!r} is not a Python literal"
+            ) from None
+
+    return parse
 
 
 def benchmark_parser(doc: str, *, device: bool = False) -> argparse.ArgumentParser:

@@ -25,12 +25,18 @@ told; box columns, evaluation mode, the main job's ``shape`` actions unless ``--
 
 from __future__ import annotations
 
-import ast
 import statistics
 from pathlib import Path
 
 import torch
-from common import benchmark_parser, run_header, table_header, table_row, write_results
+from common import (
+    benchmark_parser,
+    field_parser,
+    run_header,
+    table_header,
+    table_row,
+    write_results,
+)
 
 from terrashift_rl.envs import TerraShiftEnv
 from terrashift_rl.envs.baselines import ScriptedHeuristicPolicy
@@ -123,13 +129,16 @@ def main() -> None:
     parser.add_argument("--clearances", nargs="+", default=["none", "2.0"])
     parser.add_argument("--actuator", default="surface_flow", choices=("surface_flow", "rotors"))
     parser.add_argument("--action-mode", default="shape", choices=ACTION_MODES)
-    parser.add_argument("--overrides", nargs="+", default=[], metavar="FIELD=VALUE")
+    parser.add_argument(
+        "--overrides",
+        type=field_parser(TerraShiftConfig),
+        nargs="+",
+        default=[],
+        metavar="FIELD=VALUE",
+    )
     parser.add_argument("--out", type=Path, default=None, help="JSON path")
     args = parser.parse_args()
-    overrides = {}
-    for item in args.overrides:
-        name, _, value = item.partition("=")
-        overrides[name] = ast.literal_eval(value)
+    overrides = dict(args.overrides)
     name = "flow_stalls_cpu" + ("" if args.actuator == "surface_flow" else f"_{args.actuator}")
     out = args.out or Path(__file__).parent / "results" / f"{name}.json"
     config = evaluation_scene(

@@ -30,7 +30,6 @@ clipping, the AdamW step and the value-estimation pass, and the host synchronisa
 from __future__ import annotations
 
 import argparse
-import ast
 import collections
 import dataclasses
 import functools
@@ -39,7 +38,7 @@ import time
 from pathlib import Path
 
 import torch
-from common import benchmark_parser, device_name, run_header, write_results
+from common import benchmark_parser, device_name, field_parser, run_header, write_results
 from hydra import compose, initialize_config_dir
 from torch.autograd import DeviceType
 
@@ -113,21 +112,6 @@ def parse_setting(text: str) -> dict:
         "precision": parts[3],
         "execution": parts[4],
     }
-
-
-def parse_model_field(text: str) -> tuple[str, object]:
-    """``field=value`` of TerraShiftModelConfig, the value a Python literal: ``embed_dim=64``."""
-    field, sep, value = text.partition("=")
-    fields = {f.name for f in dataclasses.fields(TerraShiftModelConfig)}
-    if not sep or field not in fields:
-        raise argparse.ArgumentTypeError(
-            f"{text!r} is not FIELD=VALUE with FIELD one of TerraShiftModelConfig's: "
-            + ", ".join(sorted(fields))
-        )
-    try:
-        return field, ast.literal_eval(value)
-    except (ValueError, SyntaxError):
-        raise argparse.ArgumentTypeError(f"{text!r}: {value!r} is not a Python literal") from None
 
 
 def measure(setting: dict, args: argparse.Namespace, device: torch.device) -> dict:
@@ -367,7 +351,7 @@ def main() -> None:
     parser.add_argument("--preset", choices=["default", "small"], default="default")
     parser.add_argument(
         "--model",
-        type=parse_model_field,
+        type=field_parser(TerraShiftModelConfig),
         nargs="+",
         default=[],
         metavar="FIELD=VALUE",

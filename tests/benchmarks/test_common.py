@@ -1,14 +1,17 @@
 """common.py: a run continued in parts is read as one series; the shared command line, header
 and table."""
 
+import argparse
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
 
+import pytest  # noqa: E402
 import torch  # noqa: E402
 from common import (  # noqa: E402
     benchmark_parser,
+    field_parser,
     joined_series,
     run_header,
     table_header,
@@ -44,3 +47,15 @@ def test_the_shared_parser_describes_the_script_and_offers_a_device():
     assert parser.description == "Times a thing."
     assert "python benchmarks/x.py --fast" in parser.format_help()
     assert parser.parse_args(["--device", "cpu"]).device == "cpu"
+
+
+def test_field_overrides_parse_literals_and_refuse_unknown_fields_and_non_literals():
+    from terrashift_rl.sim import TerraShiftConfig
+
+    parse = field_parser(TerraShiftConfig)
+    assert parse("num_objects=1") == ("num_objects", 1)
+    assert parse("column_shape='box'") == ("column_shape", "box")
+    with pytest.raises(argparse.ArgumentTypeError, match="one of TerraShiftConfig's"):
+        parse("bogus=1")
+    with pytest.raises(argparse.ArgumentTypeError, match="not a Python literal"):
+        parse("num_objects=x")
