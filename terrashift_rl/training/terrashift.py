@@ -116,10 +116,12 @@ def make_trainer(
     :class:`~terrashift_rl.training.curriculum.CurriculumHook`)."""
     config.validate()
     teacher_coeff = getattr(config.loss, "teacher_coeff", 0.0)  # MA-POCA's alone
-    if teacher_coeff and not env.base_env.config.observe_objects:
+    scene = env.base_env.config
+    if teacher_coeff and not (scene.observe_objects or scene.privileged_objects):
         raise ValueError(
-            f"loss.teacher_coeff={teacher_coeff}: the teacher reads the object sequence, "
-            "which env.observe_objects=false leaves out"
+            f"loss.teacher_coeff={teacher_coeff}: the teacher reads the object sequence, which "
+            "env.observe_objects=false leaves out; set env.privileged_objects=true (with "
+            "model.critic_objects=true) to hand it to the teacher and the critics alone"
         )
     # The estimation pass runs without gradients, so it keeps no activations for a backward
     # pass: per env-step it needs about a fifth of a mini-batch update's memory (the medium
@@ -190,7 +192,9 @@ class ScriptedTeacher(TrainerHook):
     """Writes the scripted heuristic's action
     (:class:`~terrashift_rl.envs.baselines.ScriptedHeuristicPolicy`) into every collected step,
     under the loss's ``teacher_action`` key, and sets the loss's ``teacher_coeff`` to
-    ``schedule(iteration)`` before each update; logs it as ``teacher_coeff``."""
+    ``schedule(iteration)`` before each update; logs it as ``teacher_coeff``. The heuristic
+    reads the object sequence the agents observe or, where they sort from images alone, the
+    critics' privileged copy (``TerraShiftConfig.privileged_objects``)."""
 
     def __init__(self, scene: TerraShiftConfig, loss: MAPOCALoss, schedule: LinearSchedule):
         self.policy = ScriptedHeuristicPolicy(scene)
@@ -200,7 +204,12 @@ class ScriptedTeacher(TrainerHook):
     def on_batch_collected(self, trainer: OnPolicyTrainer, data: TensorDictBase) -> None:
         # the coefficient is a buffer: assigning a float copies in place (for CUDA graphs)
         self.loss.teacher_coeff = self.schedule(trainer.iteration)
-        observed = data.select(keys.AGENT_OBSERVATION, keys.OBJECTS, keys.OBJECTS_MASK)
+        observed = data.select(
+            keys.AGENT_OBSERVATION, keys.OBJECTS, keys.OBJECTS_MASK, strict=False
+        )
+        if keys.OBJECTS not in observed.keys(include_nested=True):  # images alone: the critics'
+            observed[keys.OBJECTS] = data.get(keys.PRIVILEGED_OBJECTS)
+            observed[keys.OBJECTS_MASK] = data.get(keys.PRIVILEGED_OBJECTS_MASK)
         data.set(self.loss.tensor_keys.teacher_action, self.policy(observed).get(keys.ACTION))
 
     def metrics(self, trainer: OnPolicyTrainer, data: TensorDictBase) -> dict[str, float]:

@@ -1,7 +1,7 @@
 """The pixels recipe: trains from the camera without the object sequence (which the critics
 alone read), in one scene or through a curriculum; a scene that lacks what the networks read,
-or hands out what they do not, a teacher without the objects, or privileged objects where
-they are observed or no critic reads them, is refused at start-up."""
+or hands out what they do not, a teacher without the objects (observed or privileged), or
+privileged objects where they are observed or no critic reads them, is refused at start-up."""
 
 import importlib.util
 import subprocess
@@ -88,7 +88,16 @@ def test_the_pixels_recipe_trains_through_a_curriculum(tmp_path):
             "model.object_tokens=true reads",
         ),
         ("mapoca_pixels", [*TINY, "model.object_tokens=true"], "model.critic_objects=true gives"),
-        ("mapoca_pixels", [*TINY, "loss.teacher_coeff=0.1"], "loss.teacher_coeff=0.1: the teach"),
+        (
+            "mapoca_pixels",
+            [
+                *TINY,
+                "loss.teacher_coeff=0.1",
+                "env.privileged_objects=false",
+                "model.critic_objects=false",
+            ],
+            "loss.teacher_coeff=0.1: the teach",
+        ),
         ("mapoca_pixels", [*TINY, "env.observe_objects=true"], "privileged_objects=true hands"),
         ("mapoca_pixels", [*TINY, "env.privileged_objects=false"], "model.critic_objects=true but"),
         ("mapoca_pixels", [*TINY, "model.critic_objects=false"], "model.critic_objects=false but"),

@@ -61,15 +61,17 @@ def train_config(*, algo: str = "mapoca", **settings) -> TrainConfig:
     )
 
 
-def make_trainer(*, seed: int = 0, model: dict | None = None, **train) -> OnPolicyTrainer:
+def make_trainer(
+    *, seed: int = 0, model: dict | None = None, scene: TerraShiftConfig = ENV, **train
+) -> OnPolicyTrainer:
     """A trainer of the small network (with ``model`` overrides) on three environments of
-    ``ENV``."""
+    ``scene``."""
     torch.manual_seed(seed)
     networks = make_terrashift_networks(
         dataclasses.replace(TerraShiftModelConfig.small(), **(model or {}))
     )
     config = train_config(num_envs=3, steps_per_iteration=8, minibatches=1, **train)
-    env = make_training_env(ENV, networks, num_envs=3, device=torch.device("cpu"), seed=seed)
+    env = make_training_env(scene, networks, num_envs=3, device=torch.device("cpu"), seed=seed)
     return terrashift.make_trainer(env, networks, config)
 
 
@@ -203,6 +205,30 @@ def test_teacher_action_is_the_scripted_heuristics_action():
     assert teacher.shape == data["agents", "action"].shape
     assert teacher.abs().max() <= 1.0 and teacher.abs().max() > 0
     assert not torch.equal(teacher, data["agents", "action"])  # the policy's own stays
+
+
+def test_teacher_reads_the_critics_objects_where_the_agents_observe_none():
+    scene = dataclasses.replace(ENV, observe_objects=False, privileged_objects=True)
+    model = {"object_tokens": False, "critic_objects": True}
+    data = make_trainer(teacher_coeff=1.0, model=model, scene=scene).collect()
+    assert "objects" not in data.keys(include_nested=True)  # the agents: heightmap alone
+    observed = TensorDict(
+        {
+            ("agents", "observation"): data["agents", "observation"],
+            "objects": data[keys.PRIVILEGED_OBJECTS],
+            "objects_mask": data[keys.PRIVILEGED_OBJECTS_MASK],
+        },
+        batch_size=data.batch_size,
+    )
+    expected = ScriptedHeuristicPolicy(scene)(observed).get(("agents", "action"))
+    torch.testing.assert_close(data[TEACHER], expected)
+    assert data[TEACHER].abs().max() > 0
+
+
+def test_a_teacher_without_objects_is_refused():
+    scene = dataclasses.replace(ENV, observe_objects=False)
+    with pytest.raises(ValueError, match="teacher reads the object sequence.*privileged_objects"):
+        make_trainer(teacher_coeff=1.0, model={"object_tokens": False}, scene=scene)
 
 
 @pytest.mark.parametrize(
