@@ -24,7 +24,8 @@ first evaluation that reaches every threshold: the times to goal are the same, t
 sooner, and ``final_goal_fraction`` is that evaluation's. Ctrl-C (or SIGTERM) stops the running
 seeds the same way and writes what every seed has logged so far (``interrupted`` in the JSON and
 in the entries of the seeds it cut short; seeds not started are left out), then exits with
-status 130.
+status 130. A seed still running ``--grace`` seconds after its ``--minutes`` is stopped so too
+and kept, marked ``interrupted``.
 
 The JSON holds ``device``, ``date``, ``command``, ``seeds`` (one entry per seed), the medians over
 seeds ``env_steps_per_s`` and ``median_seconds_to_goal`` (to the first threshold; null unless
@@ -159,20 +160,24 @@ def run_seeds(args: argparse.Namespace, folder: Path) -> tuple[list[dict], bool]
                     stopped.add(seed)
                 if process.poll() is None and elapsed < 60 * args.minutes + args.grace:
                     continue
-                if process.returncode is None:
-                    os.killpg(process.pid, 9)
-                    process.wait()
+                overran = process.returncode is None
+                if overran:
+                    stop(process, args.processes, signalled=seed in stopped)
                 log.close()
                 del running[seed]
                 free.append(slot)
                 tail = (folder / f"seed_{seed}.log").read_text()[-4000:]
                 if process.returncode != 0 and not (
-                    seed in stopped and ended_by_ctrl_c(process.returncode, args.processes, tail)
+                    overran
+                    or (
+                        seed in stopped
+                        and ended_by_ctrl_c(process.returncode, args.processes, tail)
+                    )
                 ):
                     raise SystemExit(f"seed {seed} failed (status {process.returncode}):\n{tail}")
-                (scalars,) = run_dir.glob("logs/*/scalars")
-                done.append(summarize(seed, scalars, args.thresholds, elapsed))
-                print(table_row(table_cells(done[-1], args.thresholds)), flush=True)
+                entry = logged_entry(seed, run_dir, args.thresholds, elapsed, interrupted=overran)
+                if entry is not None:
+                    done.append(entry)
     except KeyboardInterrupt:
         done += interrupt(running, stopped, args.thresholds, args.processes)
         return sorted(done, key=lambda entry: entry["seed"]), True
@@ -191,20 +196,42 @@ def interrupt(
             ctrl_c(process, processes)
     entries = []
     for seed, (process, _, start, log, run_dir) in running.items():
-        try:
-            process.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            os.killpg(process.pid, 9)
-            process.wait()
+        stop(process, processes, signalled=True)
         log.close()
-        scalars = next(run_dir.glob("logs/*/scalars"), None)
-        if scalars is None or not read_series(scalars, GOAL)[0]:
-            print(f"seed {seed}: interrupted before its first evaluation", flush=True)
-            continue
         elapsed = time.perf_counter() - start
-        entries.append({**summarize(seed, scalars, thresholds, elapsed), "interrupted": True})
-        print(table_row(table_cells(entries[-1], thresholds)), "(interrupted)", flush=True)
+        entry = logged_entry(seed, run_dir, thresholds, elapsed, interrupted=True)
+        if entry is not None:
+            entries.append(entry)
     return entries
+
+
+def logged_entry(
+    seed: int, run_dir: Path, thresholds: list[float], elapsed: float, *, interrupted: bool
+) -> dict | None:
+    """A seed's entry from what its run logged, printed as a row of the table; None (and a
+    message) if it logged no evaluation."""
+    scalars = next(run_dir.glob("logs/*/scalars"), None)
+    if scalars is None or not read_series(scalars, GOAL)[0]:
+        print(f"seed {seed}: no evaluation logged", flush=True)
+        return None
+    entry = summarize(seed, scalars, thresholds, elapsed)
+    if interrupted:
+        entry["interrupted"] = True
+    note = " (interrupted)" if interrupted else ""
+    print(table_row(table_cells(entry, thresholds)) + note, flush=True)
+    return entry
+
+
+def stop(process: subprocess.Popen, processes: int, *, signalled: bool) -> None:
+    """Stops a seed's run as Ctrl-C stops one (:func:`ctrl_c`, unless ``signalled`` already),
+    killing it if it has not ended within a minute."""
+    if not signalled:
+        ctrl_c(process, processes)
+    try:
+        process.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, 9)
+        process.wait()
 
 
 def ctrl_c(process: subprocess.Popen, processes: int) -> None:

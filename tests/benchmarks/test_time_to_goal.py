@@ -1,5 +1,5 @@
 """time_to_goal.py: a seed's time to a goal fraction from its logs, evaluation time not counted;
-the smoke launch end to end, stopped at its goal and by Ctrl-C."""
+the smoke launch end to end, stopped at its goal, by Ctrl-C and past its minutes."""
 
 import json
 import signal
@@ -117,4 +117,25 @@ def test_ctrl_c_writes_what_the_running_seed_logged_and_exits_130(tmp_path, stop
     payload = json.loads(out.read_text())
     (seed,) = payload["seeds"]
     assert payload["interrupted"] and seed["interrupted"] and seed["evaluations"] >= 1
+    assert (keep / "seed_0" / "checkpoints" / "last.pt").is_file()  # stopped as Ctrl-C stops it
+
+
+@pytest.mark.slow
+def test_a_seed_past_its_minutes_and_grace_is_stopped_and_kept(tmp_path):
+    out, keep = tmp_path / "time_to_goal.json", tmp_path / "runs"
+    command = [sys.executable, str(SCRIPT), "--smoke", "--seeds", "0", "--minutes", "0.5"]
+    command += ["--eval-every", "1", "--thresholds", "0.99", "--grace", "0"]
+    # the run itself would train for 10 minutes: the benchmark stops it after its half minute
+    command += ["--overrides", "run.minutes=10"]
+    start = time.monotonic()
+    result = subprocess.run(
+        [*command, "--out", str(out), "--keep", str(keep)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr
+    assert time.monotonic() - start < 300
+    (seed,) = json.loads(out.read_text())["seeds"]
+    assert seed["interrupted"] and seed["evaluations"] >= 1
     assert (keep / "seed_0" / "checkpoints" / "last.pt").is_file()  # stopped as Ctrl-C stops it
