@@ -1,10 +1,11 @@
 """Time to goal: how long the pretraining recipe takes to sort, seed by seed.
 
-Runs the recipe (``python recipes/mapoca_pretrain.py``, its defaults plus ``--overrides``) once
-per seed for ``--minutes`` each, evaluating every ``--eval-every`` iterations (evaluation mode,
-``run.eval_episodes`` episodes on the same scenes each time), logging to CSV. Seeds run side by
-side, one per GPU (``CUDA_VISIBLE_DEVICES``; with ``--processes N``, each seed data-parallel on N
-GPUs under torchrun), as many at a time as the host has GPUs for, else one after another.
+Runs the recipe (``python recipes/mapoca_pretrain.py``, its defaults or ``--config-name``'s,
+plus ``--overrides``) once per seed for ``--minutes`` each, evaluating every ``--eval-every``
+iterations (evaluation mode, ``run.eval_episodes`` episodes on the same scenes each time),
+logging to CSV. Seeds run side by side, one per GPU (``CUDA_VISIBLE_DEVICES``; with
+``--processes N``, each seed data-parallel on N GPUs under torchrun), as many at a time as the
+host has GPUs for, else one after another.
 
 Per seed, from the run's logs:
 
@@ -33,6 +34,7 @@ more than half the seeds reached it) and prints a table.
 
     python benchmarks/time_to_goal.py --seeds 7 8 9 10 --minutes 8
     python benchmarks/time_to_goal.py --seeds 7 --processes 4 --minutes 4   # 4 GPUs, one seed
+    python benchmarks/time_to_goal.py --config-name mapoca_pixels --seeds 7 8 9 --minutes 17
     python benchmarks/time_to_goal.py --smoke --seeds 0 1 --thresholds 0  # CPU: a launch check
 """
 
@@ -68,6 +70,8 @@ def recipe_command(seed: int, args: argparse.Namespace, run_dir: Path) -> list[s
     settings += [f"run.eval_every={args.eval_every}", "run.best_window=0"]
     if args.smoke:
         settings = ["--config-name", "smoke", *settings, "run.total_env_steps=1000000000"]
+    elif args.config_name:
+        settings = ["--config-name", args.config_name, *settings]
     return [*launcher, str(RECIPE), *settings, *args.overrides, f"hydra.run.dir={run_dir}"]
 
 
@@ -290,6 +294,11 @@ def main() -> None:
     parser.add_argument("--processes", type=int, default=1, help="GPUs per seed (torchrun)")
     parser.add_argument("--smoke", action="store_true", help="the smoke config, on the CPU")
     parser.add_argument(
+        "--config-name",
+        default=None,
+        help="the recipe's config, e.g. mapoca_pixels (default: its own)",
+    )
+    parser.add_argument(
         "--grace", type=float, default=300.0, help="seconds past --minutes before a run is killed"
     )
     parser.add_argument(
@@ -303,6 +312,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.minutes <= 0 or args.eval_every < 1 or args.processes < 1:
         parser.error("--minutes must be > 0, --eval-every and --processes >= 1")
+    if args.smoke and args.config_name:
+        parser.error("--smoke runs the smoke config: leave out --config-name")
     device = torch.device("cpu" if args.smoke else "cuda")
     if device.type == "cuda" and torch.cuda.device_count() < args.processes:
         parser.error(f"--processes {args.processes}, but this host has fewer CUDA devices")
@@ -331,7 +342,7 @@ def main() -> None:
         folder.mkdir(parents=True, exist_ok=True)
         seeds, interrupted = run_seeds(args, folder.resolve())
     if not seeds:
-        raise SystemExit("interrupted before any seed's first evaluation: nothing written")
+        raise SystemExit("no seed logged an evaluation: nothing written")
     goal = f"{args.thresholds[0]:g}"
     to_goal = sorted(
         math.inf if s["to_goal"][goal]["seconds"] is None else s["to_goal"][goal]["seconds"]

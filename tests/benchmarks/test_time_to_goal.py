@@ -1,6 +1,8 @@
 """time_to_goal.py: a seed's time to a goal fraction from its logs, evaluation time not counted;
-the smoke launch end to end, stopped at its goal, by Ctrl-C and past its minutes."""
+the recipe's command with a config name; the smoke launch end to end, stopped at its goal, by
+Ctrl-C and past its minutes."""
 
+import argparse
 import json
 import signal
 import subprocess
@@ -12,7 +14,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
 
-from time_to_goal import summarize  # noqa: E402
+from time_to_goal import recipe_command, summarize  # noqa: E402
 
 SCRIPT = Path(__file__).parents[2] / "benchmarks" / "time_to_goal.py"
 
@@ -139,3 +141,20 @@ def test_a_seed_past_its_minutes_and_grace_is_stopped_and_kept(tmp_path):
     (seed,) = json.loads(out.read_text())["seeds"]
     assert seed["interrupted"] and seed["evaluations"] >= 1
     assert (keep / "seed_0" / "checkpoints" / "last.pt").is_file()  # stopped as Ctrl-C stops it
+
+
+def test_a_config_name_reaches_the_recipe_and_not_beside_smoke():
+    args = argparse.Namespace(
+        processes=1, minutes=1.0, eval_every=5, smoke=False, config_name="mapoca_pixels"
+    )
+    args.overrides = ["env.camera_resolution=32"]
+    command = recipe_command(7, args, Path("run"))
+    at = command.index("--config-name")
+    assert command[at + 1] == "mapoca_pixels" and command[-2] == "env.camera_resolution=32"
+    result = subprocess.run(
+        [sys.executable, str(SCRIPT), "--smoke", "--config-name", "mapoca_pixels"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 2 and "leave out --config-name" in result.stderr
