@@ -299,7 +299,7 @@ def main() -> None:
         help="the recipe's config, e.g. mapoca_pixels (default: its own)",
     )
     parser.add_argument(
-        "--grace", type=float, default=300.0, help="seconds past --minutes before a run is killed"
+        "--grace", type=float, default=300.0, help="seconds past --minutes before a run is stopped"
     )
     parser.add_argument(
         "--overrides", nargs="+", default=[], metavar="KEY=VALUE", help="more recipe overrides"
