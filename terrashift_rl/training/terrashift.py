@@ -116,8 +116,8 @@ def make_trainer(
     :class:`~terrashift_rl.training.curriculum.CurriculumHook`)."""
     config.validate()
     teacher_coeff = getattr(config.loss, "teacher_coeff", 0.0)  # MA-POCA's alone
-    scene = env.base_env.config
-    if teacher_coeff and not (scene.observe_objects or scene.privileged_objects):
+    scene = env.base_env.config if teacher_coeff else None  # a curriculum has no teacher
+    if scene is not None and not (scene.observe_objects or scene.privileged_objects):
         raise ValueError(
             f"loss.teacher_coeff={teacher_coeff}: the teacher reads the object sequence, which "
             "env.observe_objects=false leaves out; set env.privileged_objects=true (with "
