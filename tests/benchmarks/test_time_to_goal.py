@@ -67,23 +67,29 @@ def test_the_smoke_setting_runs_two_seeds_on_the_cpu(tmp_path):
     assert payload["env_steps_per_s"] > 0 and "mapoca_pretrain.py" in payload["recipe_command"]
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("processes", [1, 2])  # 2: under torchrun (gloo)
-def test_stop_at_goal_interrupts_a_seed_at_its_first_evaluation_past_every_threshold(
-    tmp_path, processes
-):
+def run_one_seed(tmp_path: Path, *options: str) -> tuple[dict, Path]:
+    """Runs the smoke benchmark for seed 0, evaluating every iteration, no grace, with
+    ``options``; its seed's entry and the folder that keeps its run."""
     out, keep = tmp_path / "time_to_goal.json", tmp_path / "runs"
-    command = [sys.executable, str(SCRIPT), "--smoke", "--seeds", "0", "--minutes", "10"]
-    command += ["--processes", str(processes)]
-    command += ["--eval-every", "1", "--thresholds", "0", "--stop-at-goal", "--grace", "0"]
+    command = [sys.executable, str(SCRIPT), "--smoke", "--seeds", "0", "--eval-every", "1"]
     result = subprocess.run(
-        [*command, "--out", str(out), "--keep", str(keep)],
+        [*command, "--grace", "0", *options, "--out", str(out), "--keep", str(keep)],
         capture_output=True,
         text=True,
         timeout=600,
     )
     assert result.returncode == 0, result.stderr
     (seed,) = json.loads(out.read_text())["seeds"]
+    return seed, keep
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("processes", [1, 2])  # 2: under torchrun (gloo)
+def test_stop_at_goal_interrupts_a_seed_at_its_first_evaluation_past_every_threshold(
+    tmp_path, processes
+):
+    options = ["--minutes", "10", "--processes", str(processes), "--thresholds", "0"]
+    seed, keep = run_one_seed(tmp_path, *options, "--stop-at-goal")
     # stopped long before its 10 minutes, as Ctrl-C stops a run: with its checkpoint
     assert seed["to_goal"]["0"]["env_steps"] == processes * 4 * 8
     assert seed["launch_seconds"] < 300
@@ -124,21 +130,11 @@ def test_ctrl_c_writes_what_the_running_seed_logged_and_exits_130(tmp_path, stop
 
 @pytest.mark.slow
 def test_a_seed_past_its_minutes_and_grace_is_stopped_and_kept(tmp_path):
-    out, keep = tmp_path / "time_to_goal.json", tmp_path / "runs"
-    command = [sys.executable, str(SCRIPT), "--smoke", "--seeds", "0", "--minutes", "0.5"]
-    command += ["--eval-every", "1", "--thresholds", "0.99", "--grace", "0"]
-    # the run itself would train for 10 minutes: the benchmark stops it after its half minute
-    command += ["--overrides", "run.minutes=10"]
     start = time.monotonic()
-    result = subprocess.run(
-        [*command, "--out", str(out), "--keep", str(keep)],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert result.returncode == 0, result.stderr
+    # the run itself would train for 10 minutes: the benchmark stops it after its half minute
+    options = ["--minutes", "0.5", "--thresholds", "0.99", "--overrides", "run.minutes=10"]
+    seed, keep = run_one_seed(tmp_path, *options)
     assert time.monotonic() - start < 300
-    (seed,) = json.loads(out.read_text())["seeds"]
     assert seed["interrupted"] and seed["evaluations"] >= 1
     assert (keep / "seed_0" / "checkpoints" / "last.pt").is_file()  # stopped as Ctrl-C stops it
 
