@@ -60,10 +60,19 @@ def test_the_pixels_recipe_trains_from_the_camera_alone(tmp_path):
     assert readers == {"value_head", "baseline_head"}
 
 
+def test_the_pixels_recipe_is_taught_by_the_heuristic():
+    with initialize_config_dir(config_dir=str(RECIPES / "configs"), version_base=None):
+        taught = compose(config_name="mapoca_pixels")
+        untaught = compose(config_name="mapoca_pixels", overrides=["loss=default"])
+    assert taught.loss.teacher_coeff == 10.0 and taught.loss.teacher_coeff_end == 1.0
+    assert untaught.loss.teacher_coeff == 0.0
+
+
 @pytest.mark.slow
 def test_the_pixels_recipe_trains_through_a_curriculum(tmp_path):
     output, checkpoint = train_pixels(
         tmp_path,
+        "loss=default",  # a curriculum trains without the teacher
         "curriculum=auto",
         "curriculum.start_grid_size=6",
         "curriculum.start_num_agents=2",
@@ -101,7 +110,11 @@ def test_the_pixels_recipe_trains_through_a_curriculum(tmp_path):
         ("mapoca_pixels", [*TINY, "env.observe_objects=true"], "privileged_objects=true hands"),
         ("mapoca_pixels", [*TINY, "env.privileged_objects=false"], "model.critic_objects=true but"),
         ("mapoca_pixels", [*TINY, "model.critic_objects=false"], "model.critic_objects=false but"),
-        ("mapoca_pixels", [*TINY, "algo=ippo"], "algo=ippo's value reads each agent's own"),
+        (
+            "mapoca_pixels",
+            [*TINY, "algo=ippo", "loss=default"],
+            "algo=ippo's value reads each agent's own",
+        ),
     ],
 )
 def test_what_the_networks_read_must_be_observed(tmp_path, config, overrides, message):
