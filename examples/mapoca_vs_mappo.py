@@ -194,20 +194,60 @@ def make_actor(env: EnvBase, *, width: int, depth: int) -> ProbabilisticActor:
     )
 
 
+def centralised_mlp(env: EnvBase, *, width: int, depth: int) -> MultiAgentMLP:
+    """MAPPO's critic network: one MLP on every agent's observation concatenated, a value per
+    agent (the same for all of them)."""
+    return MultiAgentMLP(
+        n_agent_inputs=env.full_observation_spec[OBSERVATION].shape[-1],
+        n_agent_outputs=1,
+        n_agents=env.full_observation_spec[OBSERVATION].shape[-2],
+        centralized=True,
+        share_params=True,
+        depth=depth,
+        num_cells=width,
+        activation_class=nn.Tanh,
+    )
+
+
+class FirstAgent(nn.Module):
+    """The first agent's entry of [..., K, F]: the team value of a centralised critic."""
+
+    def forward(self, values: torch.Tensor) -> torch.Tensor:
+        return values[..., 0, :]
+
+
 def make_mapoca_loss(
-    env: EnvBase, actor: ProbabilisticActor, *, width: int, depth: int, **options
+    env: EnvBase,
+    actor: ProbabilisticActor,
+    *,
+    width: int,
+    depth: int,
+    value_network: str = "attention",
+    **options,
 ) -> MAPOCALoss:
     """MAPOCALoss with the generic critics; its default keys are VMAS's.
 
     ``depth`` counts the critics' hidden layers as for MAPPO's MLP critic: each generic critic
     has an MLP before the attention and one after it, and they get ``depth // 2`` hidden layers
-    each (at least one): critics as deep as MAPPO's, not twice as deep.
+    each (at least one): critics as deep as MAPPO's, not twice as deep. ``value_network="mlp"``
+    takes MAPPO's critic network (:func:`centralised_mlp`) as the value instead of
+    ``CentralValue``, an ablation; the baselines stay the generic ones.
     """
     observation_dim = env.full_observation_spec[OBSERVATION].shape[-1]
     action_dim = env.full_action_spec[ACTION].shape[-1]
-    depth = max(1, depth // 2)
-    value = CentralValue(observation_dim, width=width, depth=depth)
-    baseline = CounterfactualBaseline(observation_dim, action_dim, width=width, depth=depth)
+    if value_network == "mlp":
+        value = TensorDictModule(
+            nn.Sequential(centralised_mlp(env, width=width, depth=depth), FirstAgent()),
+            in_keys=[OBSERVATION],
+            out_keys=["state_value"],
+        )
+    elif value_network == "attention":
+        value = CentralValue(observation_dim, width=width, depth=max(1, depth // 2))
+    else:
+        raise ValueError(f"value_network must be 'attention' or 'mlp', got {value_network!r}")
+    baseline = CounterfactualBaseline(
+        observation_dim, action_dim, width=width, depth=max(1, depth // 2)
+    )
     return MAPOCALoss(actor, value, baseline, **options)
 
 
@@ -216,19 +256,8 @@ def make_mappo_loss(
 ) -> MAPPOLoss:
     """torchrl's MAPPOLoss with its usual critic: one MLP on every agent's observation, a value
     per agent."""
-    observation_dim = env.full_observation_spec[OBSERVATION].shape[-1]
-    num_agents = env.full_observation_spec[OBSERVATION].shape[-2]
     critic = TensorDictModule(
-        MultiAgentMLP(
-            n_agent_inputs=observation_dim,
-            n_agent_outputs=1,
-            n_agents=num_agents,
-            centralized=True,
-            share_params=True,
-            depth=depth,
-            num_cells=width,
-            activation_class=nn.Tanh,
-        ),
+        centralised_mlp(env, width=width, depth=depth),
         in_keys=[OBSERVATION],
         out_keys=[(GROUP, "state_value")],
     )
@@ -319,11 +348,13 @@ def run(
         device=args.device,
     )
     actor = make_actor(env, width=args.width, depth=args.depth).to(args.device)
+    value_network = {"value_network": args.value_network} if method == "MAPOCA" else {}
     loss = LOSSES[method](
         env,
         actor,
         width=args.width,
         depth=args.critic_depth,
+        **value_network,
         clip_epsilon=0.2,
         entropy_coeff=args.entropy_coeff,
     ).to(args.device)
@@ -370,6 +401,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         default=2,
         help="hidden layers of MAPPO's critic; MA-POCA's critics get half as many before and "
         "half after their attention",
+    )
+    parser.add_argument(
+        "--value-network",
+        choices=("attention", "mlp"),
+        default="attention",
+        help="MA-POCA's value: CentralValue, or MAPPO's critic network (an ablation)",
     )
     parser.add_argument(
         "--counterfactual-warmup",
