@@ -91,6 +91,24 @@ def test_mapoca_critics_split_the_hidden_layers_of_mappos_critic_around_the_atte
         assert hidden_layers(baseline.other_state_action) == each
 
 
+def test_mapoca_can_take_mappos_critic_network_as_its_value(example):
+    env = example.TeamNavigationEnv(2, num_agents=3)
+    env.set_seed(0)
+    actor = example.make_actor(env, width=8, depth=1)
+    mappo_critic = example.make_mappo_loss(env, actor, width=8, depth=2).critic_network
+    loss = example.make_mapoca_loss(env, actor, width=8, depth=2, value_network="mlp")
+    mlp = loss.value_network.module[0]
+    assert type(mlp) is type(mappo_critic.module)
+    mlp.load_state_dict(mappo_critic.module.state_dict())
+    data = env.rollout(3, actor)
+    per_agent = mappo_critic(data.clone()).get(("agents", "state_value"))
+    team = loss.value_network(data.clone()).get("state_value")
+    # the centralised MLP gives every agent the same value: the team's
+    torch.testing.assert_close(per_agent, team.unsqueeze(-2).expand_as(per_agent))
+    with pytest.raises(ValueError, match="value_network must be 'attention' or 'mlp'"):
+        example.make_mapoca_loss(env, actor, width=8, depth=2, value_network="gru")
+
+
 def test_example_trains_both_losses_and_writes_the_table(tmp_path):
     output = tmp_path / "results.json"
     options = ["--iterations", "2", "--num-envs", "4", "--episode-steps", "5"]
