@@ -20,7 +20,8 @@ Both losses get the same actor, the same hyperparameters and the same training l
 torchrl's MAPPO example writes it: a ``Collector``, the value-estimation call with
 ``params=loss.critic_network_params``, and the sum of every ``loss_*`` term. MAPOCALoss gets
 the generic critics of ``terrashift_rl.modules``; MAPPOLoss its usual centralised
-``MultiAgentMLP`` critic, one value per agent. The script prints a table, method by method, of
+``MultiAgentMLP`` critic, one value per agent (``--value-network mlp`` gives MA-POCA that network
+as its value, an ablation). The script prints a table, method by method, of
 the mean team reward per step over the last ``--final-iterations`` collected batches (mean ± sd
 over seeds), and writes the curves to ``--json``.
 """
