@@ -236,6 +236,7 @@ def make_mapoca_loss(
     """
     observation_dim = env.full_observation_spec[OBSERVATION].shape[-1]
     action_dim = env.full_action_spec[ACTION].shape[-1]
+    half = max(1, depth // 2)
     if value_network == "mlp":
         value = TensorDictModule(
             nn.Sequential(centralised_mlp(env, width=width, depth=depth), FirstAgent()),
@@ -243,12 +244,10 @@ def make_mapoca_loss(
             out_keys=["state_value"],
         )
     elif value_network == "attention":
-        value = CentralValue(observation_dim, width=width, depth=max(1, depth // 2))
+        value = CentralValue(observation_dim, width=width, depth=half)
     else:
         raise ValueError(f"value_network must be 'attention' or 'mlp', got {value_network!r}")
-    baseline = CounterfactualBaseline(
-        observation_dim, action_dim, width=width, depth=max(1, depth // 2)
-    )
+    baseline = CounterfactualBaseline(observation_dim, action_dim, width=width, depth=half)
     return MAPOCALoss(actor, value, baseline, **options)
 
 
