@@ -93,11 +93,12 @@ def device_name(device: torch.device) -> str:
 
 
 def write_results(path: Path, payload: dict) -> None:
-    """Writes ``payload`` as JSON through a temporary file, so the file is never half-written
-    (scripts call it after every measured row: a run stopped part-way keeps its rows)."""
+    """Writes ``payload`` as compact JSON through a temporary file, so the file is never
+    half-written (scripts call it after every measured row: a run stopped part-way keeps its
+    rows) and the results kept in git stay small."""
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(path.name + ".partial")
-    partial.write_text(json.dumps(payload, indent=2))
+    partial.write_text(json.dumps(payload, separators=(",", ":")))
     partial.replace(path)
 
 
