@@ -21,9 +21,10 @@ torchrl's MAPPO example writes it: a ``Collector``, the value-estimation call wi
 ``params=loss.critic_network_params``, and the sum of every ``loss_*`` term. MAPOCALoss gets
 the generic critics of ``terrashift_rl.modules``; MAPPOLoss its usual centralised
 ``MultiAgentMLP`` critic, one value per agent (``--value-network mlp`` gives MA-POCA that network
-as its value, an ablation). The script prints a table, method by method, of
-the mean team reward per step over the last ``--final-iterations`` collected batches (mean ± sd
-over seeds), and writes the curves to ``--json``.
+as its value: the better one where the team's reward follows one shared object). The script
+prints a table, method by method, of the mean team reward per step over the last
+``--final-iterations`` collected batches (mean ± sd over seeds), and writes the curves to
+``--json``.
 """
 
 from __future__ import annotations
@@ -232,7 +233,7 @@ def make_mapoca_loss(
     has an MLP before the attention and one after it, and they get ``depth // 2`` hidden layers
     each (at least one): critics as deep as MAPPO's, not twice as deep. ``value_network="mlp"``
     takes MAPPO's critic network (:func:`centralised_mlp`) as the value instead of
-    ``CentralValue``, an ablation; the baselines stay the generic ones.
+    ``CentralValue``; the baselines stay the generic ones.
     """
     observation_dim = env.full_observation_spec[OBSERVATION].shape[-1]
     action_dim = env.full_action_spec[ACTION].shape[-1]
@@ -406,7 +407,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--value-network",
         choices=("attention", "mlp"),
         default="attention",
-        help="MA-POCA's value: CentralValue, or MAPPO's critic network (an ablation)",
+        help="MA-POCA's value: CentralValue, or MAPPO's critic network",
     )
     parser.add_argument(
         "--counterfactual-warmup",
