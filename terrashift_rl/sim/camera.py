@@ -21,7 +21,8 @@ brighter than its own goal, and every level tells apart what it shows.
 
 Three launches draw it: the terrain under every pixel, two columns of pixels per thread; then
 each goal's region and then each sphere over it, a thread per pixel column of the object's
-box, so that only the pixels about an object test it.
+box, so that only the pixels about an object test it. The threads of one box walk its rows
+together, so that the pixels they write at a time lie side by side in one row.
 """
 
 from __future__ import annotations
@@ -319,7 +320,8 @@ def draw_goals(
 ):
     """Paints each goal's region over the terrain where that goal is the nearest, a column of
     the pixels around one goal per thread; the goals are compared only where another goal's
-    region may reach the same pixels of the column.
+    region may reach the same pixels of the column. The box's threads walk all its rows in
+    step, each writing only those within its column's chord.
 
     Launch dim: [num_envs, G, box] as (env, goal, column of the goal's box of pixels); ``box``
     is at least the number of pixel columns within ``goal_radius`` of a point.
@@ -339,15 +341,17 @@ def draw_goals(
         if other != c and overlap(rows, chord_rows(model, camera_model, x, other_centre, reach)):
             shared = True
     level = marker_level(model.num_goals, c, 0)
-    for cy in range(rows[0], rows[1] + 1):
-        y = pixel_coordinate(model, camera_model, cy)
-        nearest = bool(False)
-        if shared:
-            nearest = nearest_goal(model, goal_cell, e, x, y) == c
-        else:
-            nearest = goal_distance2(model, cell, x, y) < reach * reach
-        if nearest:
-            camera[e, 0, cy, cx] = level
+    box = pixels_within(model, camera_model, centre[1], reach)
+    for cy in range(box[0], box[1] + 1):  # the box's rows, the same in each of its threads
+        if cy >= rows[0] and cy <= rows[1]:
+            y = pixel_coordinate(model, camera_model, cy)
+            nearest = bool(False)
+            if shared:
+                nearest = nearest_goal(model, goal_cell, e, x, y) == c
+            else:
+                nearest = goal_distance2(model, cell, x, y) < reach * reach
+            if nearest:
+                camera[e, 0, cy, cx] = level
 
 
 @wp.kernel
@@ -361,7 +365,8 @@ def draw_spheres(
 ):
     """Draws each active sphere where it is the first thing a ray from above meets, a column
     of the pixels around one sphere per thread; the spheres are compared only where another
-    sphere may reach the same pixels of the column.
+    sphere may reach the same pixels of the column. The box's threads walk all its rows in
+    step, each writing only those within its column's chord.
 
     Launch dim: [num_envs, M, box] as (env, sphere, column of the sphere's box of pixels);
     ``box`` is at least the number of pixel columns within ``sphere_radius`` of a point.
@@ -383,16 +388,18 @@ def draw_spheres(
         if other != j and active[e, other] != 0 and reaches:
             shared = True
     level = marker_level(model.num_goals, j % model.num_goals, 1)
-    for cy in range(rows[0], rows[1] + 1):
-        y = pixel_coordinate(model, camera_model, cy)
-        surface = pixel_surface(model, camera_model, height, e, cx, cy)
-        front = bool(False)
-        if shared:
-            front = front_sphere(model, active, position, e, x, y, surface) == j
-        else:
-            front = sphere_top(model, p, x, y) > surface
-        if front:
-            camera[e, 0, cy, cx] = level
+    box = pixels_within(model, camera_model, p[1], reach)
+    for cy in range(box[0], box[1] + 1):  # the box's rows, the same in each of its threads
+        if cy >= rows[0] and cy <= rows[1]:
+            y = pixel_coordinate(model, camera_model, cy)
+            surface = pixel_surface(model, camera_model, height, e, cx, cy)
+            front = bool(False)
+            if shared:
+                front = front_sphere(model, active, position, e, x, y, surface) == j
+            else:
+                front = sphere_top(model, p, x, y) > surface
+            if front:
+                camera[e, 0, cy, cx] = level
 
 
 KERNELS = (draw_terrain, draw_goals, draw_spheres)
