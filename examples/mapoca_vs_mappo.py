@@ -21,7 +21,8 @@ torchrl's MAPPO example writes it: a ``Collector``, the value-estimation call wi
 ``params=loss.critic_network_params``, and the sum of every ``loss_*`` term. MAPOCALoss gets
 the generic critics of ``terrashift_rl.modules``; MAPPOLoss its usual centralised
 ``MultiAgentMLP`` critic, one value per agent (``--value-network mlp`` gives MA-POCA that network
-as its value: the better one where the team's reward follows one shared object). The script
+as its value: the better one where the team's reward follows one shared object;
+``--baseline-network mlp`` baselines of the same kind, cheaper than the attention). The script
 prints a table, method by method, of the mean team reward per step over the last
 ``--final-iterations`` collected batches (mean ± sd over seeds), and writes the curves to
 ``--json``.
@@ -45,7 +46,12 @@ from torchrl.modules import MultiAgentMLP, NormalParamExtractor, ProbabilisticAc
 from torchrl.objectives import LossModule
 from torchrl.objectives.multiagent import MAPPOLoss
 
-from terrashift_rl.modules import CentralValue, CounterfactualBaseline
+from terrashift_rl.modules import (
+    CentralValue,
+    CounterfactualBaseline,
+    CounterfactualMLP,
+    mlp_value,
+)
 from terrashift_rl.objectives import MAPOCALoss
 
 GROUP = "agents"
@@ -211,13 +217,6 @@ def centralised_mlp(env: EnvBase, *, width: int, depth: int) -> MultiAgentMLP:
     )
 
 
-class FirstAgent(nn.Module):
-    """The first agent's entry of [..., K, F]: the team value of a centralised critic."""
-
-    def forward(self, values: torch.Tensor) -> torch.Tensor:
-        return values[..., 0, :]
-
-
 def make_mapoca_loss(
     env: EnvBase,
     actor: ProbabilisticActor,
@@ -225,30 +224,36 @@ def make_mapoca_loss(
     width: int,
     depth: int,
     value_network: str = "attention",
+    baseline_network: str = "attention",
     **options,
 ) -> MAPOCALoss:
     """MAPOCALoss with the generic critics; its default keys are VMAS's.
 
-    ``depth`` counts the critics' hidden layers as for MAPPO's MLP critic: each generic critic
-    has an MLP before the attention and one after it, and they get ``depth // 2`` hidden layers
-    each (at least one): critics as deep as MAPPO's, not twice as deep. ``value_network="mlp"``
-    takes MAPPO's critic network (:func:`centralised_mlp`) as the value instead of
-    ``CentralValue``; the baselines stay the generic ones.
+    ``depth`` counts the critics' hidden layers as for MAPPO's MLP critic: each attention
+    critic has an MLP before the attention and one after it, and they get ``depth // 2`` hidden
+    layers each (at least one): critics as deep as MAPPO's, not twice as deep.
+    ``value_network="mlp"`` takes MAPPO's critic network (``mlp_value``) as the value instead
+    of ``CentralValue``; ``baseline_network="mlp"`` takes ``CounterfactualMLP``, as wide and
+    deep as MAPPO's critic, instead of ``CounterfactualBaseline``.
     """
     observation_dim = env.full_observation_spec[OBSERVATION].shape[-1]
+    num_agents = env.full_observation_spec[OBSERVATION].shape[-2]
     action_dim = env.full_action_spec[ACTION].shape[-1]
     half = max(1, depth // 2)
     if value_network == "mlp":
-        value = TensorDictModule(
-            nn.Sequential(centralised_mlp(env, width=width, depth=depth), FirstAgent()),
-            in_keys=[OBSERVATION],
-            out_keys=["state_value"],
-        )
+        value = mlp_value(num_agents, observation_dim, width=width, depth=depth)
     elif value_network == "attention":
         value = CentralValue(observation_dim, width=width, depth=half)
     else:
         raise ValueError(f"value_network must be 'attention' or 'mlp', got {value_network!r}")
-    baseline = CounterfactualBaseline(observation_dim, action_dim, width=width, depth=half)
+    if baseline_network == "mlp":
+        baseline = CounterfactualMLP(
+            num_agents, observation_dim, action_dim, width=width, depth=depth
+        )
+    elif baseline_network == "attention":
+        baseline = CounterfactualBaseline(observation_dim, action_dim, width=width, depth=half)
+    else:
+        raise ValueError(f"baseline_network must be 'attention' or 'mlp', got {baseline_network!r}")
     return MAPOCALoss(actor, value, baseline, **options)
 
 
@@ -349,13 +354,17 @@ def run(
         device=args.device,
     )
     actor = make_actor(env, width=args.width, depth=args.depth).to(args.device)
-    value_network = {"value_network": args.value_network} if method == "MAPOCA" else {}
+    critics = (
+        {"value_network": args.value_network, "baseline_network": args.baseline_network}
+        if method == "MAPOCA"
+        else {}
+    )
     loss = LOSSES[method](
         env,
         actor,
         width=args.width,
         depth=args.critic_depth,
-        **value_network,
+        **critics,
         clip_epsilon=0.2,
         entropy_coeff=args.entropy_coeff,
     ).to(args.device)
@@ -408,6 +417,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         choices=("attention", "mlp"),
         default="attention",
         help="MA-POCA's value: CentralValue, or MAPPO's critic network",
+    )
+    parser.add_argument(
+        "--baseline-network",
+        choices=("attention", "mlp"),
+        default="attention",
+        help="MA-POCA's baselines: CounterfactualBaseline, or CounterfactualMLP (as wide and "
+        "deep as MAPPO's critic)",
     )
     parser.add_argument(
         "--counterfactual-warmup",

@@ -2,7 +2,8 @@
 critics, and IPPO's per-agent value.
 
 For another environment with flat per-agent observations, :class:`CentralValue` and
-:class:`CounterfactualBaseline` are MA-POCA's critics built from plain sizes. For TerraShift,
+:class:`CounterfactualBaseline` are MA-POCA's critics built from plain sizes (:func:`mlp_value`
+and :class:`CounterfactualMLP` cheaper ones for a team of a fixed size). For TerraShift,
 start with :func:`make_terrashift_networks`; :mod:`terrashift_rl.modules.networks` documents
 how the trunk is shared and which keys every module reads and writes, and
 :mod:`terrashift_rl.modules.trunk` the recurrent-state conventions.
@@ -17,6 +18,9 @@ from terrashift_rl.modules.critics import (
     CentralValueHead,
     CounterfactualBaseline,
     CounterfactualBaselineHead,
+    CounterfactualMLP,
+    MLPBaseline,
+    mlp_value,
 )
 from terrashift_rl.modules.distributions import ScaledBeta
 from terrashift_rl.modules.entities import AgentEncoder, ObjectEncoder
@@ -38,8 +42,10 @@ __all__ = [
     "CentralValueHead",
     "CounterfactualBaseline",
     "CounterfactualBaselineHead",
+    "CounterfactualMLP",
     "GaussianPolicyHead",
     "HeightmapEncoder",
+    "MLPBaseline",
     "ObjectEncoder",
     "ObjectReader",
     "ScaledBeta",
@@ -50,4 +56,5 @@ __all__ = [
     "keys",
     "make_agent_value_head",
     "make_terrashift_networks",
+    "mlp_value",
 ]

@@ -19,7 +19,7 @@ def tiny_args(**overrides) -> argparse.Namespace:
     return argparse.Namespace(**settings)
 
 
-@pytest.mark.parametrize("method", loss_speed.DEFAULT_METHODS)
+@pytest.mark.parametrize("method", (*loss_speed.DEFAULT_METHODS, "MAPOCA, MLP critics"))
 def test_each_method_gets_a_measured_row_with_its_parts(method):
     row = loss_speed.timing(method, 3, tiny_args())
     assert (row["method"], row["agents"]) == (method, 3)

@@ -17,6 +17,7 @@ from terrashift_rl.modules import (
     CentralValueHead,
     CounterfactualBaseline,
     CounterfactualBaselineHead,
+    CounterfactualMLP,
 )
 from terrashift_rl.modules.layers import masked_mean
 
@@ -381,3 +382,57 @@ def test_terrashift_heads_are_the_generic_networks_on_embeddings(value_head, bas
     embedding, _ = agent_inputs()
     # the value head's encoder is the identity: the trunk already embeds every agent
     torch.testing.assert_close(value_head.encoder(embedding), embedding)
+
+
+# --- the MLP baseline ----------------------------------------------------------------------
+
+
+@pytest.fixture
+def mlp_baseline():
+    torch.manual_seed(0)
+    baseline = CounterfactualMLP(5, OBS_DIM, ACTION_DIM, width=16, depth=2)
+    nn.init.normal_(baseline.module.agent)  # agent vectors start at zero: make them count
+    return baseline
+
+
+def test_mlp_baseline_is_one_mlp_per_agent_on_the_team_without_its_action(mlp_baseline):
+    data = team((2, 3))
+    network = mlp_baseline.module
+    observation, action = data["agents", "observation"], data["agents", "action"]
+    expected = []
+    for i in range(5):  # the plain reading: agent i's own action zeroed, its vector added
+        others = action.clone()
+        others[..., i, :] = 0.0
+        flat = torch.cat([observation.flatten(-2), others.flatten(-2)], -1)
+        expected.append(network.head(network.team(flat) + network.agent[i]))
+    baseline = mlp_baseline(data)["agents", "baseline"]
+    assert baseline.shape == (2, 3, 5, 1)
+    torch.testing.assert_close(baseline, torch.stack(expected, -2), atol=ATOL, rtol=1e-4)
+
+
+def test_mlp_baseline_of_an_agent_ignores_its_own_action_only(mlp_baseline):
+    data = team()
+    baseline = mlp_baseline(data.clone())["agents", "baseline"]
+    data["agents", "action"][:, 1] += 1.0
+    changed = mlp_baseline(data)["agents", "baseline"]
+    torch.testing.assert_close(changed[:, 1], baseline[:, 1])
+    assert not torch.allclose(changed[:, [0, 2, 3, 4]], baseline[:, [0, 2, 3, 4]], atol=1e-4)
+
+
+def test_mlp_baseline_ignores_absent_agents_and_one_hot_encodes_integer_actions():
+    torch.manual_seed(0)
+    baseline = CounterfactualMLP(5, OBS_DIM, 3, width=8, depth=1)
+    data = team()
+    data["agents", "action"] = torch.randint(3, (4, 5))
+    data["agents", "mask"] = torch.tensor([True, True, False, True, False]).expand(4, 5)
+    expected = baseline(data.clone())["agents", "baseline"]
+    data["agents", "observation"][:, [2, 4]] = 100.0
+    data["agents", "action"][:, [2, 4]] = 2
+    torch.testing.assert_close(baseline(data)["agents", "baseline"], expected)
+
+
+def test_mlp_baseline_names_a_team_of_another_size(mlp_baseline):
+    with pytest.raises(ValueError, match=r"built for 5 agents.*'observation'.*holds 3"):
+        mlp_baseline(team(num_agents=3))
+    with pytest.raises(ValueError, match="at least one hidden layer"):
+        CounterfactualMLP(5, OBS_DIM, ACTION_DIM, depth=0)

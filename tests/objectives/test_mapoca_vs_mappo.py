@@ -12,6 +12,8 @@ from tensordict import TensorDict
 from torch import nn
 from torchrl.envs.utils import check_env_specs
 
+from terrashift_rl.modules import CounterfactualMLP
+
 EXAMPLE = Path(__file__).parents[2] / "examples" / "mapoca_vs_mappo.py"
 STEP_SIZE = 0.1
 
@@ -107,6 +109,24 @@ def test_mapoca_can_take_mappos_critic_network_as_its_value(example):
     torch.testing.assert_close(per_agent, team.unsqueeze(-2).expand_as(per_agent))
     with pytest.raises(ValueError, match="value_network must be 'attention' or 'mlp'"):
         example.make_mapoca_loss(env, actor, width=8, depth=2, value_network="gru")
+
+
+def test_mapoca_can_take_mlp_baselines_as_wide_and_deep_as_mappos_critic(example):
+    env = example.TeamNavigationEnv(2, num_agents=3)
+    env.set_seed(0)
+    actor = example.make_actor(env, width=8, depth=1)
+    loss = example.make_mapoca_loss(
+        env, actor, width=8, depth=2, value_network="mlp", baseline_network="mlp"
+    )
+    baseline = loss.baseline_network
+    assert isinstance(baseline, CounterfactualMLP) and baseline.num_agents == 3
+    widths = [layer.out_features for layer in baseline.module.head if isinstance(layer, nn.Linear)]
+    assert baseline.module.team.out_features == 8 and widths == [8, 1]  # two hidden layers
+    with torch.no_grad():
+        data = env.rollout(3, actor)
+    assert loss(data)["loss_baseline"].isfinite()
+    with pytest.raises(ValueError, match="baseline_network must be 'attention' or 'mlp'"):
+        example.make_mapoca_loss(env, actor, width=8, depth=2, baseline_network="gru")
 
 
 def test_example_trains_both_losses_and_writes_the_table(tmp_path):
