@@ -58,12 +58,20 @@ from terrashift_rl.objectives import MAPOCALoss
 OBSERVATION_DIM, ACTION_DIM = 10, 2
 GROUP = "agents"
 OBSERVATION, ACTION = (GROUP, "observation"), (GROUP, "action")
-METHODS = ("MAPOCA", "MAPOCA, one pass", "MAPOCA, compiled", "MAPOCA, MLP critics", "MAPPO")
+METHODS = (
+    "MAPOCA",
+    "MAPOCA, one pass",
+    "MAPOCA, compiled",
+    "MAPOCA, MLP value",
+    "MAPOCA, MLP critics",
+    "MAPPO",
+)
 """"MAPOCA" runs the estimation pass in its default pieces (``max_batch="auto"``), "MAPOCA,
 one pass" on the whole batch at once (``max_batch=None``): the same results in more memory.
 "MAPOCA, compiled" is the default with the README's ``torch.compile`` recipe (the critics'
 networks and the loss); its first update, which compiles, is reported apart. "MAPOCA, MLP
-critics" has MAPPO's critic network as V (``mlp_value``) and ``CounterfactualMLP`` baselines
+value" has MAPPO's critic network as V (``mlp_value``) beside the default baselines, "MAPOCA,
+MLP critics" that V and ``CounterfactualMLP`` baselines
 as wide and deep (2 x 128, tanh)."""
 DEFAULT_METHODS = ("MAPOCA", "MAPOCA, one pass", "MAPPO")
 
@@ -92,13 +100,15 @@ def make_actor() -> ProbabilisticActor:
 def make_loss(method: str, num_agents: int, args: argparse.Namespace) -> LossModule:
     actor = make_actor()
     estimator = {"gamma": 0.99, "lmbda": 0.95}
-    if method == "MAPOCA, MLP critics":
-        value = mlp_value(num_agents, OBSERVATION_DIM, width=128, depth=2)
-        baseline = CounterfactualMLP(num_agents, OBSERVATION_DIM, ACTION_DIM, width=128, depth=2)
-        loss = MAPOCALoss(actor, value, baseline)
-    elif method.startswith("MAPOCA"):
+    if method.startswith("MAPOCA"):
         value = CentralValue(OBSERVATION_DIM, width=64, depth=1)
         baseline = CounterfactualBaseline(OBSERVATION_DIM, ACTION_DIM, width=64, depth=1)
+        if method in ("MAPOCA, MLP value", "MAPOCA, MLP critics"):
+            value = mlp_value(num_agents, OBSERVATION_DIM, width=128, depth=2)
+        if method == "MAPOCA, MLP critics":
+            baseline = CounterfactualMLP(
+                num_agents, OBSERVATION_DIM, ACTION_DIM, width=128, depth=2
+            )
         loss = MAPOCALoss(actor, value, baseline)
     else:
         critic = TensorDictModule(

@@ -591,7 +591,7 @@ class MLPBaseline(nn.Module):
         # each agent's own action term of the first layer: [H, K * A] -> [K, A, H]
         action_weight = self.team.weight[:, -self.num_agents * self.action_dim :]
         action_weight = action_weight.t().reshape(self.num_agents, self.action_dim, -1)
-        own = (action.unsqueeze(-2) @ action_weight).squeeze(-2)
+        own = torch.einsum("...ka,kah->...kh", action, action_weight)  # K products, not B * K
         return self.head(team.unsqueeze(-2) - own + self.agent)
 
 

@@ -19,7 +19,10 @@ def tiny_args(**overrides) -> argparse.Namespace:
     return argparse.Namespace(**settings)
 
 
-@pytest.mark.parametrize("method", (*loss_speed.DEFAULT_METHODS, "MAPOCA, MLP critics"))
+MLP_METHODS = ("MAPOCA, MLP value", "MAPOCA, MLP critics")
+
+
+@pytest.mark.parametrize("method", (*loss_speed.DEFAULT_METHODS, *MLP_METHODS))
 def test_each_method_gets_a_measured_row_with_its_parts(method):
     row = loss_speed.timing(method, 3, tiny_args())
     assert (row["method"], row["agents"]) == (method, 3)
