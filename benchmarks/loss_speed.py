@@ -71,8 +71,7 @@ one pass" on the whole batch at once (``max_batch=None``): the same results in m
 "MAPOCA, compiled" is the default with the README's ``torch.compile`` recipe (the critics'
 networks and the loss); its first update, which compiles, is reported apart. "MAPOCA, MLP
 value" has MAPPO's critic network as V (``mlp_value``) beside the default baselines, "MAPOCA,
-MLP critics" that V and ``CounterfactualMLP`` baselines
-as wide and deep (2 x 128, tanh)."""
+MLP critics" that V and ``CounterfactualMLP`` baselines as wide and deep (2 x 128, tanh)."""
 DEFAULT_METHODS = ("MAPOCA", "MAPOCA, one pass", "MAPPO")
 
 

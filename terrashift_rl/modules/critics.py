@@ -665,11 +665,15 @@ class CounterfactualMLP(_Baseline):
 
     def forward(self, tensordict: TensorDictBase, **kwargs) -> TensorDictBase:
         observation_key = self.in_keys[0]
-        agents = tensordict.get(observation_key).shape[-2]
-        if agents != self.num_agents:
+        observation = tensordict.get(observation_key, None)  # missing: named by the checks
+        if (
+            observation is not None
+            and observation.ndim >= 2
+            and (observation.shape[-2] != self.num_agents)
+        ):
             raise ValueError(
                 f"{type(self).__name__} was built for {self.num_agents} agents; "
-                f"{observation_key!r} holds {agents}."
+                f"{observation_key!r} holds {observation.shape[-2]}."
             )
         return super().forward(tensordict, **kwargs)
 

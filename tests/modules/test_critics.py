@@ -434,5 +434,9 @@ def test_mlp_baseline_ignores_absent_agents_and_one_hot_encodes_integer_actions(
 def test_mlp_baseline_names_a_team_of_another_size(mlp_baseline):
     with pytest.raises(ValueError, match=r"built for 5 agents.*'observation'.*holds 3"):
         mlp_baseline(team(num_agents=3))
+    data = team()
+    data["agents"].del_("observation")
+    with pytest.raises(KeyError, match=r"CounterfactualMLP reads .*'observation'"):
+        mlp_baseline(data)
     with pytest.raises(ValueError, match="at least one hidden layer"):
         CounterfactualMLP(5, OBS_DIM, ACTION_DIM, depth=0)
