@@ -18,14 +18,12 @@ from terrashift_rl.modules.critics import (
     CentralValueHead,
     CounterfactualBaseline,
     CounterfactualBaselineHead,
-    CounterfactualMLP,
-    MLPBaseline,
-    mlp_value,
 )
 from terrashift_rl.modules.distributions import ScaledBeta
 from terrashift_rl.modules.entities import AgentEncoder, ObjectEncoder
 from terrashift_rl.modules.heightmap import AdaptiveSpatialTokenizer, HeightmapEncoder
 from terrashift_rl.modules.independent import AgentValueHead, make_agent_value_head
+from terrashift_rl.modules.mlp_critics import CounterfactualMLP, MLPBaseline, mlp_value
 from terrashift_rl.modules.networks import TerraShiftNetworks, make_terrashift_networks
 from terrashift_rl.modules.object_reader import ObjectReader
 from terrashift_rl.modules.policy import BetaPolicyHead, GaussianPolicyHead
