@@ -362,7 +362,7 @@ def run(
     loss = LOSSES[method](
         env,
         actor,
-        width=args.width,
+        width=args.critic_width or args.width,
         depth=args.critic_depth,
         **critics,
         clip_epsilon=0.2,
@@ -403,7 +403,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--gamma", type=float, default=0.9)
     parser.add_argument("--lmbda", type=float, default=0.9)
     parser.add_argument("--entropy-coeff", type=float, default=0.0)
-    parser.add_argument("--width", type=int, default=64)
+    parser.add_argument("--width", type=int, default=64, help="hidden width of the actor")
+    parser.add_argument(
+        "--critic-width",
+        type=int,
+        default=None,
+        help="hidden width of both methods' critics (default: --width)",
+    )
     parser.add_argument("--depth", type=int, default=2, help="hidden layers of the actor")
     parser.add_argument(
         "--critic-depth",

@@ -227,6 +227,12 @@ def train(
                 f"{minibatches} x {processes}): an optimiser step averages "
                 f"{num_envs // minibatches:,} sequences, as with one process"
             )
+        if settings.train.compile:
+            log.info(
+                "torch.compile compiles the networks in the first iterations: about 2.5 minutes "
+                "on a machine's first run, half a minute from Inductor's cache after it "
+                "(train.compile=false runs them eagerly)"
+            )
     progress = tqdm(
         total=planned if deadline is None else None,  # known after the first iteration
         initial=trainer.env_steps,

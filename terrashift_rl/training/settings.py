@@ -262,6 +262,7 @@ class RunConfig:
         [
             "model=small",
             "train.num_envs=32",
+            "train.compile=false",
             "run.eval_episodes=16",
             "run.minutes=5",
             "run.threads=1",
@@ -269,10 +270,10 @@ class RunConfig:
         OVERRIDES,
     )
     """With ``device=auto`` and no CUDA device, these overrides size the run for a CPU (a first
-    iteration in seconds, under 1 GB, five minutes of training, one thread), each unless the
-    command line sets its key or group; a run from a checkpoint (resume, pretrained) builds
-    that checkpoint's model instead of ``model=small``. ``device=cpu`` keeps the configured
-    sizes."""
+    iteration in seconds, no compilation, under 1 GB, five minutes of training, one thread),
+    each unless the command line sets its key or group; a run from a checkpoint (resume,
+    pretrained) builds that checkpoint's model instead of ``model=small``. ``device=cpu`` keeps
+    the configured sizes."""
     threads: int | None = setting(None, at_least(1), null="torch's default")
     """Threads of torch's operators on the CPU (``torch.set_num_threads``). The CPU-sized run
     takes one: its networks are too small to share out, and on cores that other programs use

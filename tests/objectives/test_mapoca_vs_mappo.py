@@ -129,6 +129,27 @@ def test_mapoca_can_take_mlp_baselines_as_wide_and_deep_as_mappos_critic(example
         example.make_mapoca_loss(env, actor, width=8, depth=2, baseline_network="gru")
 
 
+@pytest.mark.parametrize("method", ["MAPOCA", "MAPPO"])
+def test_critic_width_sizes_both_methods_critics_and_leaves_the_actor(example, monkeypatch, method):
+    built = {}
+    monkeypatch.setattr(
+        example, "train", lambda loss, env, **options: built.setdefault("loss", loss)
+    )
+    options = ["--width", "8", "--critic-width", "12", "--critic-depth", "2"]
+    args = example.parse_args([*options, "--value-network", "mlp", "--baseline-network", "mlp"])
+    example.run(method, env_name="team_navigation", seed=0, args=args)
+    loss = built["loss"]
+
+    def widths(module: nn.Module) -> set[int]:
+        return {layer.out_features for layer in module.modules() if isinstance(layer, nn.Linear)}
+
+    assert widths(loss.actor_network) == {8, 4}  # hidden layers and the two Normal parameters
+    critics = (
+        [loss.critic_network] if method == "MAPPO" else [loss.value_network, loss.baseline_network]
+    )
+    assert all(widths(critic) == {12, 1} for critic in critics)
+
+
 def test_example_trains_both_losses_and_writes_the_table(tmp_path):
     output = tmp_path / "results.json"
     options = ["--iterations", "2", "--num-envs", "4", "--episode-steps", "5"]
