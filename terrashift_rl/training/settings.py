@@ -165,11 +165,10 @@ class TrainConfig:
     process-wide ``torch.backends.cuda.matmul.allow_tf32``)."""
     stagger_episodes: bool = setting(True)
     """Spread the first episodes' step limits over an episode's length, so that environments do
-    not all reset at the same decision
-    (:meth:`~terrashift_rl.envs.terrashift.TerraShiftEnv.stagger_episodes`)."""
+    not reset together (:meth:`~terrashift_rl.envs.terrashift.TerraShiftEnv.stagger_episodes`)."""
     compile: bool = setting(False)
-    """``torch.compile`` the networks (all but the GRU's loop over time); the first iterations
-    then include compilation. With ``cuda_graphs`` the compiled kernels replay in the graphs."""
+    """``torch.compile`` the networks (all but the GRU's loop over time), replayed in the graphs
+    of ``cuda_graphs``; the first iterations compile. The recipes' ``train=default`` sets it."""
     cuda_graphs: bool = setting(True)
     """On CUDA, replay the actor's collection step and the mini-batch update (loss, backward,
     clipping, AdamW) as CUDA graphs (:class:`~terrashift_rl.training.graphs.CudaGraphed`);
@@ -269,11 +268,11 @@ class RunConfig:
         ],
         OVERRIDES,
     )
-    """With ``device=auto`` and no CUDA device, these overrides size the run for a CPU (a first
-    iteration in seconds, no compilation, under 1 GB, five minutes of training, one thread),
-    each unless the command line sets its key or group; a run from a checkpoint (resume,
-    pretrained) builds that checkpoint's model instead of ``model=small``. ``device=cpu`` keeps
-    the configured sizes."""
+    """With ``device=auto`` and no CUDA device, these overrides size the run for a CPU (first
+    iteration in seconds, uncompiled, under 1 GB, five minutes, one thread), each unless the
+    command line sets its key or group; a run from a checkpoint (resume, pretrained) builds
+    that checkpoint's model instead of ``model=small``. ``device=cpu`` keeps the configured
+    sizes."""
     threads: int | None = setting(None, at_least(1), null="torch's default")
     """Threads of torch's operators on the CPU (``torch.set_num_threads``). The CPU-sized run
     takes one: its networks are too small to share out, and on cores that other programs use
