@@ -146,10 +146,12 @@ def summarise(curves: dict[str, dict[int, list[float]]], final_fraction: float) 
 TRAINING_ARGS = (
     "env", "agents", "iterations", "num_envs", "episode_steps", "epochs", "minibatch_size", "lr",
     "gamma", "lmbda", "entropy_coeff", "width", "depth", "critic_width", "critic_depth",
-    "value_network", "baseline_network", "counterfactual_warmup",
+    "value_network", "baseline_network", "counterfactual_warmup", "least_variance_weight",
 )  # fmt: skip
 """The example's options that shape a run: outputs merged together must agree on them."""
-MAPOCA_ARGS = ("value_network", "baseline_network", "counterfactual_warmup")
+MAPOCA_ARGS = (
+    "value_network", "baseline_network", "counterfactual_warmup", "least_variance_weight",
+)  # fmt: skip
 """Those that shape MA-POCA's runs alone: outputs without MA-POCA runs need not agree on them."""
 
 
@@ -167,12 +169,12 @@ def merge(results: list[dict], final_fraction: float, seeds: list[int] | None = 
     """One output from several of the same settings (say, one per method, run side by side):
     the curves together (of ``seeds`` only, if given), the table recomputed, every source's
     command or settings kept."""
-    # the example's options --agents, --critic-width, --critic-depth and --counterfactual-warmup
-    # were None, None, 2 and 0 (their defaults) where a file predates them; the critics' networks
-    # went unrecorded (None)
+    # the example's options --agents, --critic-width, --critic-depth, --counterfactual-warmup and
+    # --least-variance-weight were None, None, 2, 0 and False (their defaults) where a file
+    # predates them; the critics' networks went unrecorded (None)
     earlier = {
         "agents": None, "critic_width": None, "critic_depth": 2, "value_network": None,
-        "baseline_network": None, "counterfactual_warmup": 0,
+        "baseline_network": None, "counterfactual_warmup": 0, "least_variance_weight": False,
     }  # fmt: skip
     settings = [{**earlier, **result["args"]} for result in results]
     merged_args = {}

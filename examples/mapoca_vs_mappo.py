@@ -355,7 +355,11 @@ def run(
     )
     actor = make_actor(env, width=args.width, depth=args.depth).to(args.device)
     critics = (
-        {"value_network": args.value_network, "baseline_network": args.baseline_network}
+        {
+            "value_network": args.value_network,
+            "baseline_network": args.baseline_network,
+            "least_variance_weight": args.least_variance_weight,
+        }
         if method == "MAPOCA"
         else {}
     )
@@ -437,6 +441,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         default=0,
         help="iterations over which MA-POCA's advantages move from G - V to G - b_i "
         "(MAPOCALoss's counterfactual_weight from 0 to 1); 0: G - b_i throughout",
+    )
+    parser.add_argument(
+        "--least-variance-weight",
+        action="store_true",
+        help="MAPOCALoss's least_variance_weight: each batch lowers the counterfactual weight "
+        "to the blend of V and b_i whose advantages vary least",
     )
     parser.add_argument("--final-iterations", type=int, default=5)
     parser.add_argument("--json", default=None, help="where to write the curves and the table")

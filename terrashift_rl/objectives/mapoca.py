@@ -247,7 +247,11 @@ class MAPOCAValueEstimator:
         # fitted worse than V (counterfactual_weight < 1)
         weight = loss.counterfactual_weight
         value = state_value.unsqueeze(-2)
-        advantage = value_target.unsqueeze(-2) - (value + weight * (baseline - value))
+        residual, difference = value_target.unsqueeze(-2) - value, baseline - value
+        if loss.least_variance_weight:
+            mask = None if agent_mask is None else agent_mask.unsqueeze(-1)
+            weight = torch.minimum(weight, _least_variance_weight(residual, difference, mask))
+        advantage = residual - weight * difference
         if loss.normalize_advantage:
             advantage = _masked_standardize(advantage, agent_mask)
         if agent_mask is not None:
@@ -402,6 +406,10 @@ class MAPOCALoss(LossModule):
             actions, fit the returns worse than V, and their error is noise in every agent's
             advantage: a schedule from 0 to 1 over the first updates starts as fast as MAPPO
             and ends with the counterfactual credit (docs/results.md, "MAPOCALoss on VMAS").
+        least_variance_weight: in each value-estimation pass, lower w to the blend whose
+            advantages vary least over the batch, Cov(G - V, b_i - V) / Var(b_i - V) clipped to
+            [0, 1], where that is below ``counterfactual_weight``: the baselines weigh in as
+            far as they take noise out of the advantages.
 
     Examples:
         >>> import torch
@@ -531,6 +539,7 @@ class MAPOCALoss(LossModule):
         value_normalizer: ValueNormalizer | None = None,
         teacher_coeff: float | None = None,
         counterfactual_weight: float = 1.0,
+        least_variance_weight: bool = False,
     ) -> None:
         if team_reward_reduction not in ("mean", "sum"):
             raise ValueError(
@@ -564,6 +573,7 @@ class MAPOCALoss(LossModule):
             self.register_coeff_buffer(name, value, device=device, dtype=torch.float32)
         self.loss_critic_type = loss_critic_type
         self.normalize_advantage = normalize_advantage
+        self.least_variance_weight = least_variance_weight
         self.per_dimension_ratio = per_dimension_ratio
         self.max_log_ratio = max_log_ratio
         self.team_reward_reduction = team_reward_reduction
@@ -1153,6 +1163,19 @@ def _masked_standardize(advantage: torch.Tensor, agent_mask: torch.Tensor | None
     mean = _masked_mean(advantage, mask)
     std = _masked_mean((advantage - mean).square(), mask).sqrt()
     return (advantage - mean) / (std + _ADVANTAGE_STD_EPS)
+
+
+def _least_variance_weight(
+    residual: torch.Tensor, difference: torch.Tensor, mask: torch.Tensor | None
+) -> torch.Tensor:
+    """The w in [0, 1] for which residual - w * difference varies least over the present
+    entries (G - V - w (b_i - V): the blend of V and b_i with the least noisy advantage), a
+    regression slope Cov / Var, clipped."""
+    residual = residual - _masked_mean(residual, mask)
+    difference = difference - _masked_mean(difference, mask)
+    covariance = _masked_mean(residual * difference, mask)
+    variance = _masked_mean(difference.square(), mask)
+    return (covariance / (variance + torch.finfo(variance.dtype).eps)).clamp(0.0, 1.0)
 
 
 def _explained_variance(

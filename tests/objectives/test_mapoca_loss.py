@@ -1176,3 +1176,29 @@ def test_recurrent_trunk_values_of_next_states_match_collection():
             gae = delta + GAMMA * LMBDA * (~done[n, t]) * gae
             returns[n, t] = gae + value_now[n, t]
     torch.testing.assert_close(data["value_target"].squeeze(-1), returns, **TOLERANCE)
+
+
+@pytest.mark.parametrize(
+    ("seed", "cap"),
+    [(15, 1.0), (15, 0.3), (1, 1.0)],
+    ids=["a-blend", "the-schedule's-cap", "value-alone"],
+)
+def test_least_variance_weight_takes_the_blend_whose_advantages_vary_least(seed, cap):
+    modules = make_modules()
+    actor, value, baseline, _ = wrap(modules)
+    data = make_batch(actor, seed=seed)  # batch 15: the least noisy blend lies near 0.54
+    returns, old_value, old_baseline = reference_returns(modules, data)
+    entries = [(n, t, i) for n in range(N_ENVS) for t in range(N_STEPS) for i in range(N_AGENTS)]
+    mask = data["agents", "mask"]
+    present = [entry for entry in entries if mask[entry]]
+    residual = torch.tensor([returns[n, t] - old_value[n, t] for n, t, _ in present])
+    difference = torch.tensor([old_baseline[n, t][i] - old_value[n, t] for n, t, i in present])
+    # the least varying of the advantages G - V - w (b_i - V), by search over w in [0, 1]
+    grid = torch.linspace(0, 1, 1_000_001, dtype=torch.float64).unsqueeze(-1)
+    spread = (residual - grid * difference).var(dim=-1, correction=0)
+    weight = min(cap, grid[spread.argmin()].item())
+    loss = make_loss(actor, value, baseline, least_variance_weight=True)
+    loss.counterfactual_weight = cap  # the weight can only go down from the schedule's
+    loss.value_estimator(data)
+    advantage = data["agents", "advantage"].squeeze(-1)[mask]
+    torch.testing.assert_close(advantage, residual - weight * difference, atol=1e-5, rtol=1e-4)

@@ -150,6 +150,16 @@ def test_critic_width_sizes_both_methods_critics_and_leaves_the_actor(example, m
     assert all(widths(critic) == {12, 1} for critic in critics)
 
 
+@pytest.mark.parametrize("flag", [[], ["--least-variance-weight"]])
+def test_least_variance_weight_reaches_mapocas_loss(example, monkeypatch, flag):
+    built = {}
+    monkeypatch.setattr(
+        example, "train", lambda loss, env, **options: built.setdefault("loss", loss)
+    )
+    example.run("MAPOCA", env_name="team_navigation", seed=0, args=example.parse_args(flag))
+    assert built["loss"].least_variance_weight is bool(flag)
+
+
 def test_example_trains_both_losses_and_writes_the_table(tmp_path):
     output = tmp_path / "results.json"
     options = ["--iterations", "2", "--num-envs", "4", "--episode-steps", "5"]
