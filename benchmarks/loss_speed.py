@@ -7,8 +7,8 @@ a forward pass, backward and an Adam step. K agents observe 10 features and act 
 Both losses share the actor of ``examples/mapoca_vs_mappo.py`` (a tanh-Normal MLP, 2 x 64);
 MAPOCALoss has the README's critics, ``CentralValue(10, width=64, depth=1)`` and
 ``CounterfactualBaseline(10, 2, width=64, depth=1)``; MAPPOLoss its usual centralised
-``MultiAgentMLP`` critic (2 x 128). Every measurement runs in a fresh process, on one CPU
-thread by default (``--threads``), and memory and time are measured in separate ones.
+``MultiAgentMLP`` critic (2 x 128, ``--mlp-width``). Every measurement runs in a fresh process,
+on one CPU thread by default (``--threads``), and memory and time are measured in separate ones.
 
 Time per update is the median of ``--repeats`` updates after one warm-up, wall-clock and
 processor time; the ratios are of processor time on CPU (steadier where other work shares the
@@ -64,6 +64,7 @@ METHODS = (
     "MAPOCA, compiled",
     "MAPOCA, MLP value",
     "MAPOCA, MLP critics",
+    "MAPOCA, MLP critics, least-variance weight",
     "MAPPO",
 )
 """"MAPOCA" runs the estimation pass in its default pieces (``max_batch="auto"``), "MAPOCA,
@@ -71,7 +72,8 @@ one pass" on the whole batch at once (``max_batch=None``): the same results in m
 "MAPOCA, compiled" is the default with the README's ``torch.compile`` recipe (the critics'
 networks and the loss); its first update, which compiles, is reported apart. "MAPOCA, MLP
 value" has MAPPO's critic network as V (``mlp_value``) beside the default baselines, "MAPOCA,
-MLP critics" that V and ``CounterfactualMLP`` baselines as wide and deep (2 x 128, tanh)."""
+MLP critics" that V and ``CounterfactualMLP`` baselines as wide and deep (2 x 128, tanh), and
+"..., least-variance weight" the same with ``least_variance_weight=True``."""
 DEFAULT_METHODS = ("MAPOCA", "MAPOCA, one pass", "MAPPO")
 
 
@@ -102,13 +104,15 @@ def make_loss(method: str, num_agents: int, args: argparse.Namespace) -> LossMod
     if method.startswith("MAPOCA"):
         value = CentralValue(OBSERVATION_DIM, width=64, depth=1)
         baseline = CounterfactualBaseline(OBSERVATION_DIM, ACTION_DIM, width=64, depth=1)
-        if method in ("MAPOCA, MLP value", "MAPOCA, MLP critics"):
-            value = mlp_value(num_agents, OBSERVATION_DIM, width=128, depth=2)
-        if method == "MAPOCA, MLP critics":
+        if method.startswith(("MAPOCA, MLP value", "MAPOCA, MLP critics")):
+            value = mlp_value(num_agents, OBSERVATION_DIM, width=args.mlp_width, depth=2)
+        if method.startswith("MAPOCA, MLP critics"):
             baseline = CounterfactualMLP(
-                num_agents, OBSERVATION_DIM, ACTION_DIM, width=128, depth=2
+                num_agents, OBSERVATION_DIM, ACTION_DIM, width=args.mlp_width, depth=2
             )
-        loss = MAPOCALoss(actor, value, baseline)
+        loss = MAPOCALoss(
+            actor, value, baseline, least_variance_weight=method.endswith("least-variance weight")
+        )
     else:
         critic = TensorDictModule(
             MultiAgentMLP(
@@ -118,7 +122,7 @@ def make_loss(method: str, num_agents: int, args: argparse.Namespace) -> LossMod
                 centralized=True,
                 share_params=True,
                 depth=2,
-                num_cells=128,
+                num_cells=args.mlp_width,
                 activation_class=nn.Tanh,
             ),
             in_keys=[OBSERVATION],
@@ -384,6 +388,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--minibatch", type=int, default=400)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument(
+        "--mlp-width", type=int, default=128, help="hidden width of MAPPO's and the MLP critics"
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument("--parts", action="store_true", help="also time the parts of an update")
     parser.add_argument("--out", type=Path, default=None, help="JSON path (default by device)")

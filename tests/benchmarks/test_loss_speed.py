@@ -15,11 +15,15 @@ import loss_speed  # noqa: E402
 
 def tiny_args(**overrides) -> argparse.Namespace:
     settings = {"device": "cpu", "envs": 2, "steps": 3, "minibatch": 3, "repeats": 1}
-    settings |= {"threads": 1, "parts": True} | overrides
+    settings |= {"threads": 1, "parts": True, "mlp_width": 8} | overrides
     return argparse.Namespace(**settings)
 
 
-MLP_METHODS = ("MAPOCA, MLP value", "MAPOCA, MLP critics")
+MLP_METHODS = (
+    "MAPOCA, MLP value",
+    "MAPOCA, MLP critics",
+    "MAPOCA, MLP critics, least-variance weight",
+)
 
 
 @pytest.mark.parametrize("method", (*loss_speed.DEFAULT_METHODS, *MLP_METHODS))
@@ -31,6 +35,13 @@ def test_each_method_gets_a_measured_row_with_its_parts(method):
     critics = ("value network", "baseline network") if "MAPOCA" in method else ("critic",)
     for part in ("step", "actor", "optimiser", "loss terms", "estimation", *critics):
         assert math.isfinite(row["parts_ms"][part])
+
+
+def test_the_least_variance_method_is_the_mlp_critics_with_the_weight_lowered():
+    plain = loss_speed.make_loss("MAPOCA, MLP critics", 3, tiny_args())
+    lowered = loss_speed.make_loss("MAPOCA, MLP critics, least-variance weight", 3, tiny_args())
+    assert lowered.least_variance_weight and not plain.least_variance_weight
+    assert type(lowered.baseline_network) is type(plain.baseline_network)
 
 
 def test_an_update_trains_every_network_of_the_loss():
