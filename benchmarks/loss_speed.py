@@ -401,7 +401,10 @@ def main() -> None:
         "date": date.today().isoformat(),
         "device": device_name(device),
         "threads": args.threads if device.type == "cpu" else None,
-        "settings": {key: getattr(args, key) for key in ("envs", "steps", "minibatch", "repeats")},
+        "settings": {
+            key: getattr(args, key)
+            for key in ("envs", "steps", "minibatch", "repeats", "mlp_width")
+        },
         "rows": [],
     }
     print(
