@@ -109,8 +109,11 @@ def summarize(seed: int, scalars: Path, thresholds: list[float], launch_seconds:
     return {
         "seed": seed,
         "to_goal": to_goal,
-        # each evaluation: env-steps, training seconds, goal fraction
-        "curve": [[int(at), training_seconds(at), goal] for at, goal, _ in in_loop],
+        # each evaluation: env-steps, training seconds, goal fraction (to a hundredth of a
+        # second and four decimals: 128 episodes resolve no finer)
+        "curve": [
+            [int(at), round(training_seconds(at), 2), round(goal, 4)] for at, goal, _ in in_loop
+        ],
         "final_goal_fraction": goal_fractions[-1],
         "evaluations": len(evaluations),
         "evaluation_seconds": sum(eval_seconds),

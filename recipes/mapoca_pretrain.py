@@ -229,8 +229,8 @@ def train(
             )
         if settings.train.compile:
             log.info(
-                "torch.compile compiles the networks in the first iterations: about 2.5 minutes "
-                "on a machine's first run, half a minute from Inductor's cache after it "
+                "torch.compile compiles the networks' update in the first iterations: about a "
+                "minute on a machine's first run, seconds from Inductor's cache after it "
                 "(train.compile=false runs them eagerly)"
             )
     progress = tqdm(

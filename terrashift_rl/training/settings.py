@@ -167,8 +167,8 @@ class TrainConfig:
     """Spread the first episodes' step limits over an episode's length, so that environments do
     not reset together (:meth:`~terrashift_rl.envs.terrashift.TerraShiftEnv.stagger_episodes`)."""
     compile: bool = setting(False)
-    """``torch.compile`` the networks (all but the GRU's loop over time), replayed in the graphs
-    of ``cuda_graphs``; the first iterations compile. The recipes' ``train=default`` sets it."""
+    """``torch.compile`` the update's networks (not the GRU's loop over time; acting and value
+    estimation run eagerly); the first iterations compile. ``train=default`` sets it."""
     cuda_graphs: bool = setting(True)
     """On CUDA, replay the actor's collection step and the mini-batch update (loss, backward,
     clipping, AdamW) as CUDA graphs (:class:`~terrashift_rl.training.graphs.CudaGraphed`);

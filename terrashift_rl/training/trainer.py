@@ -272,7 +272,8 @@ class OnPolicyTrainer:
         return policy
 
     def _act(self, tensordict: TensorDictBase) -> TensorDictBase:
-        return self.policy(tensordict).select(*self._actor_outputs)
+        with self._uncompiled():
+            return self.policy(tensordict).select(*self._actor_outputs)
 
     def _act_with(self, exploration: ExplorationType, tensordict: TensorDictBase) -> TensorDictBase:
         with set_exploration_type(exploration):
@@ -289,7 +290,7 @@ class OnPolicyTrainer:
         with distributed.watch(
             "the value estimation (all-reduce of the returns)", iteration=iteration
         ):
-            with self._autocast():
+            with self._autocast(), self._uncompiled():
                 self.algorithm.estimate(data)
             self._synchronize()
         estimation_seconds = time.perf_counter() - start
@@ -582,6 +583,16 @@ class OnPolicyTrainer:
         if self.config.bf16 and self.device.type == "cuda":
             # cached casts of the weights are freed on exit: a graph must not keep them
             return torch.autocast("cuda", dtype=torch.bfloat16, cache_enabled=not self._graphs)
+        return contextlib.nullcontext()
+
+    def _uncompiled(self) -> contextlib.AbstractContextManager:
+        """Where acting and the value-estimation pass run: eagerly under ``config.compile``.
+        Their inputs take other shapes than the update's (collection's, evaluation's, the pass's
+        pieces and its episode ends'), each a compilation of every network: compiled as well,
+        they cost a run about a minute more on an empty cache to save a tenth of an iteration
+        (``docs/benchmarks.md``)."""
+        if self.config.compile:
+            return torch.compiler.set_stance("force_eager")
         return contextlib.nullcontext()
 
     def _synchronize(self) -> None:

@@ -166,6 +166,36 @@ def test_compiled_networks_give_the_eager_loss():
     assert state.keys() == eager.networks.state_dict().keys()  # checkpoints are unchanged
 
 
+class _Estimated(Exception):
+    """Raised after the value-estimation pass, before the update's epochs."""
+
+
+def test_a_compiled_trainer_acts_and_estimates_without_compiling(monkeypatch):
+    # under train.compile, acting (collection and evaluation) and the value-estimation pass run
+    # the networks eagerly: their many input shapes would each cost a compilation
+    trainer = make_trainer(compile=True)
+    torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()
+    data = trainer.collect()
+    trainer.evaluation_policy(ExplorationType.DETERMINISTIC)(data[:, 0].clone())
+    estimate = trainer.algorithm.estimate
+
+    def estimate_then_stop(batch):
+        estimate(batch)
+        raise _Estimated
+
+    monkeypatch.setattr(trainer.algorithm, "estimate", estimate_then_stop)
+    with pytest.raises(_Estimated):
+        trainer.update(data)
+    assert data["state_value"].isfinite().all()  # the pass ran
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == 0
+    # the same networks outside the trainer's eager passes are compiled
+    embedding = torch.randn(2, ENV.num_agents, TerraShiftModelConfig.small().embed_dim)
+    with torch.no_grad():
+        trainer.networks.value_head.module(embedding)
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] > 0
+
+
 @pytest.mark.parametrize("stagger", [False, True])
 def test_first_episodes_end_together_only_without_staggering(stagger):
     trainer = make_trainer(stagger_episodes=stagger)
