@@ -90,6 +90,10 @@ class MAPOCAValueEstimator:
     is read from step t + 1 wherever step t did not end an episode, and the networks run on
     ``data["next"]`` only at episode ends and the last step: exact for collected trajectories,
     where ``data["next"]`` at step t is the root of step t + 1, and one network pass cheaper.
+    With ``reuse_actor_outputs``, critics that read what the actor writes (a shared trunk's
+    embedding) read it on the batch's states as collection stored it, and the actor runs on
+    ``data["next"]`` alone: exact for a batch collected with the current parameters, as an
+    on-policy batch is before its update.
 
     The networks run in pieces of whole rows of the leading batch dim (``max_batch``): by
     default rows that hold at most :data:`AUTO_PIECE_ELEMENTS` elements, so that the pass's
@@ -113,6 +117,7 @@ class MAPOCAValueEstimator:
         max_batch: rows of the leading batch dim per piece of the networks' passes, ``"auto"``
             (rows of at most :data:`AUTO_PIECE_ELEMENTS` elements) or ``None`` (one pass).
         reuse_root_values: whether V(s_{t+1}) is read from step t + 1 within episodes.
+        reuse_actor_outputs: whether the critics read the actor's outputs stored in the batch.
     """
 
     def __init__(
@@ -124,6 +129,7 @@ class MAPOCAValueEstimator:
         lmbda: float,
         max_batch: int | Literal["auto"] | None = "auto",
         reuse_root_values: bool = False,
+        reuse_actor_outputs: bool = False,
     ) -> None:
         if max_batch not in ("auto", None) and (
             isinstance(max_batch, bool) or not isinstance(max_batch, int) or max_batch < 1
@@ -137,6 +143,7 @@ class MAPOCAValueEstimator:
         self.lmbda = lmbda
         self.max_batch = max_batch
         self.reuse_root_values = reuse_root_values
+        self.reuse_actor_outputs = reuse_actor_outputs
 
     def __repr__(self) -> str:
         return (
@@ -184,7 +191,9 @@ class MAPOCAValueEstimator:
             set_recurrent_mode(False),
             loss._critic_parameters(params, "params"),
         ):
-            state_value, baseline = self._critics(root, with_baseline=True, elements=elements)
+            state_value, baseline = self._critics(
+                root, with_baseline=True, elements=elements, run_actor=not self._stored(root)
+            )
         agent_mask = loss._agent_mask(tensordict, baseline)
         agent_shape = baseline.shape[:-1]
         done = loss._team_flag(tensordict, "done", agent_mask, agent_shape)
@@ -274,19 +283,40 @@ class MAPOCAValueEstimator:
             return None
         return self.max_batch * math.prod(tensordict.batch_size[1:])
 
+    def _stored(self, root: TensorDictBase) -> bool:
+        """Whether the critics read the actor's outputs from ``root`` as stored
+        (``reuse_actor_outputs``); refuses a batch that lacks them."""
+        loss = self.loss
+        if not (self.reuse_actor_outputs and loss._critics_read_actor_outputs):
+            return False
+        written = set(loss.actor_network.det_part.out_keys)
+        read = {*loss.value_network.in_keys, *loss.baseline_network.in_keys} & written
+        missing = [key for key in read if key not in root.keys(True)]
+        if missing:
+            raise KeyError(
+                f"reuse_actor_outputs: the batch lacks {missing}, which the critics read from "
+                "the actor; keep the actor's outputs in the batch or set it False."
+            )
+        return True
+
     def _critics(
-        self, tensordict: TensorDictBase, *, with_baseline: bool, elements: int | None
+        self,
+        tensordict: TensorDictBase,
+        *,
+        with_baseline: bool,
+        elements: int | None,
+        run_actor: bool = True,
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """The loss's critics on ``tensordict``, in pieces of whole leading rows that hold at
-        most ``elements`` batch elements (at least one row; in step mode every element is
-        independent, so the pieces give the same values)."""
+        """The loss's critics (after the actor if ``run_actor``) on ``tensordict``, in pieces of
+        whole leading rows that hold at most ``elements`` batch elements (at least one row; in
+        step mode every element is independent, so the pieces give the same values)."""
         rows = None if elements is None else max(1, elements // math.prod(tensordict.shape[1:]))
+        run = functools.partial(
+            self.loss._run_critics, with_baseline=with_baseline, run_actor=run_actor
+        )
         if rows is None or tensordict.shape[0] <= rows:
-            return self.loss._run_critics(tensordict, with_baseline=with_baseline)
-        pieces = [
-            self.loss._run_critics(piece, with_baseline=with_baseline)
-            for piece in tensordict.split(rows, dim=0)
-        ]
+            return run(tensordict)
+        pieces = [run(piece) for piece in tensordict.split(rows, dim=0)]
         value = torch.cat([value for value, _ in pieces])
         baseline = torch.cat([b for _, b in pieces]) if with_baseline else None
         return value, baseline
@@ -719,6 +749,7 @@ class MAPOCALoss(LossModule):
         lmbda: float = 0.95,
         max_batch: int | Literal["auto"] | None = "auto",
         reuse_root_values: bool = False,
+        reuse_actor_outputs: bool = False,
     ) -> MAPOCALoss:
         """Sets the value-estimation pass, reachable as ``loss.value_estimator``.
 
@@ -735,6 +766,9 @@ class MAPOCALoss(LossModule):
             reuse_root_values: read V(s_{t+1}) from step t + 1 within episodes and run the
                 networks on ``"next"`` only at episode ends and the last step; exact for
                 collected trajectories (see :class:`MAPOCAValueEstimator`).
+            reuse_actor_outputs: critics that read the actor's outputs (a shared trunk's
+                embedding) read them on the batch's states as collection stored them, one
+                actor pass fewer; exact for a batch collected with the current parameters.
 
         Returns:
             The loss, for chaining.
@@ -754,6 +788,7 @@ class MAPOCALoss(LossModule):
             lmbda=lmbda,
             max_batch=max_batch,
             reuse_root_values=reuse_root_values,
+            reuse_actor_outputs=reuse_actor_outputs,
         )
         return self
 

@@ -222,7 +222,10 @@ class EmbeddingCriticEstimate:
     from step t + 1 within episodes and computed on ``data["next"]`` only where step t ended an
     episode and at the last step, as :class:`~terrashift_rl.objectives.MAPOCAValueEstimator`
     does with ``reuse_root_values``, and as it reads nothing on the host but how many states
-    that is. The networks run on at most as many elements at a time as ``max_batch`` rows hold.
+    that is. On the batch's own states the critic alone reads the embedding that collection
+    stored, as the actor wrote it with the same parameters (``critic``); the trunk runs on
+    ``data["next"]`` alone. The networks run on at most as many elements at a time as
+    ``max_batch`` rows hold.
 
     The loss's value estimator (a :class:`~torchrl.objectives.value.MultiAgentGAE` without a
     value network, in its recursive form) then reads these values from the data and writes the
@@ -234,6 +237,7 @@ class EmbeddingCriticEstimate:
     Args:
         loss: a torchrl PPO loss whose value estimator reads precomputed values.
         value_network: trunk + critic, writing the loss's value key.
+        critic: the critic alone, reading the embedding.
 
     Keyword Args:
         max_batch: the networks run on at most as many elements at a time as this many rows of
@@ -245,12 +249,14 @@ class EmbeddingCriticEstimate:
         self,
         loss: LossModule,
         value_network: TensorDictModule,
+        critic: TensorDictModule,
         *,
         max_batch: int | None = None,
         value_normalizer: ValueNormalizer | None = None,
     ) -> None:
         self.loss = loss
         self.value_network = value_network
+        self.critic = critic
         self.max_batch = max_batch
         self.value_normalizer = value_normalizer
 
@@ -261,13 +267,15 @@ class EmbeddingCriticEstimate:
         # pieces of at most as many elements as max_batch rows hold
         elements = None if self.max_batch is None else self.max_batch * math.prod(data.shape[1:])
         with set_exploration_type(ExplorationType.DETERMINISTIC), set_recurrent_mode(False):
-            value = self._values(data.exclude("next"), elements)
+            value = self._values(self.critic, data.exclude("next"), elements)
             # runs on "next" where step t + 1's root is another episode or outside the batch
             fresh = data.get(("next", "done")).squeeze(-1).clone()
             fresh[..., -1] = True
             next_value = value.roll(-1, dims=data.ndim - 1)
             index = fresh.flatten().nonzero().squeeze(-1)  # the pass's one host read
-            fresh_value = self._values(data.get("next").reshape(-1)[index], elements)
+            fresh_value = self._values(
+                self.value_network, data.get("next").reshape(-1)[index], elements
+            )
             next_value.flatten(0, data.ndim - 1).index_copy_(0, index, fresh_value)
         stored = value
         normalizer = self.value_normalizer
@@ -284,14 +292,16 @@ class EmbeddingCriticEstimate:
             data.set(self.loss.tensor_keys.value_target, normalizer.normalize(value_target))
         return data
 
-    def _values(self, tensordict: TensorDictBase, elements: int | None) -> Tensor:
-        """The critic on ``tensordict`` in pieces of whole leading rows that hold at most
+    def _values(
+        self, network: TensorDictModule, tensordict: TensorDictBase, elements: int | None
+    ) -> Tensor:
+        """``network`` on ``tensordict`` in pieces of whole leading rows that hold at most
         ``elements`` batch elements (at least one row)."""
         key = self.loss.tensor_keys.value
         rows = tensordict.shape[0]
         if elements is not None:
             rows = max(1, elements // math.prod(tensordict.shape[1:]))
-        pieces = [self.value_network(piece.copy()).get(key) for piece in tensordict.split(rows)]
+        pieces = [network(piece.copy()).get(key) for piece in tensordict.split(rows)]
         return torch.cat(pieces)
 
 
@@ -338,6 +348,7 @@ def make_mapoca(networks: TerraShiftNetworks, config: MAPOCAConfig, *, max_batch
         lmbda=config.lmbda,
         max_batch=max_batch,
         reuse_root_values=True,  # collected trajectories: next[t] is the root of t + 1
+        reuse_actor_outputs=True,  # the embedding collection stored, with these parameters
     )
     return Algorithm(
         loss=loss,
@@ -397,6 +408,7 @@ def _make_ppo(
     estimate = EmbeddingCriticEstimate(
         loss,
         TensorDictSequential(networks.trunk, critic),
+        critic,
         max_batch=max_batch,
         value_normalizer=normalizer,
     )

@@ -52,11 +52,6 @@ __all__ = [
     "terrashift_hooks",
 ]
 
-# Collection writes these as by-products of acting; every pass of the update recomputes them
-# with the current parameters, so the batch does not keep them. (It keeps the distribution's
-# parameters, 12 numbers per agent-step, for `concentration_metrics`.)
-_RECOMPUTED_KEYS = (keys.AGENT_EMBEDDING,)
-
 
 def check_scene(env_config: TerraShiftConfig, networks: TerraShiftNetworks) -> None:
     """Refuses a scene that lacks an observation the networks read (the camera, the objects, the
@@ -151,7 +146,6 @@ def make_trainer(
         config,
         networks=networks,
         hooks=terrashift_hooks(env.base_env, algorithm, config, scene_state=scene_state),
-        policy_outputs=[key for key in networks.actor.out_keys if key not in _RECOMPUTED_KEYS],
     )
 
 

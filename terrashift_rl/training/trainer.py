@@ -36,7 +36,7 @@ from dataclasses import asdict
 from typing import Any
 
 import torch
-from tensordict import NestedKey, TensorDict, TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -130,8 +130,6 @@ class OnPolicyTrainer:
         networks: every network the policy and the critics run, saved in checkpoints as
             ``networks`` (the algorithm's own as ``algorithm_networks``).
         hooks: the scene's pieces, called in order.
-        policy_outputs: the policy's outputs the batch keeps; all its ``out_keys`` if ``None``
-            (an output every update recomputes need not be kept).
     """
 
     def __init__(
@@ -144,7 +142,6 @@ class OnPolicyTrainer:
         *,
         networks: torch.nn.Module,
         hooks: Sequence[TrainerHook] = (),
-        policy_outputs: Sequence[NestedKey] | None = None,
     ):
         config.validate(processes=distributed.world_size())
         if len(optimizer.param_groups) != 2:
@@ -180,7 +177,7 @@ class OnPolicyTrainer:
         # schedule moves the first inside the update
         self._lr_scales = torch.ones(2, device=self.device)
         self._actor_inputs = policy.in_keys
-        self._actor_outputs = list(policy.out_keys if policy_outputs is None else policy_outputs)
+        self._actor_outputs = list(policy.out_keys)
         self._rank_keys = (*_RANK_KEYS, *(key for hook in self.hooks for key in hook.state_keys))
         self._summed_metrics = (
             *_SUMMED_METRICS,

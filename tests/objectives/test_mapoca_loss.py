@@ -532,6 +532,36 @@ def test_reusing_root_values_gives_the_same_results():
         )
 
 
+def test_reusing_the_actors_outputs_gives_the_same_results():
+    # A collected batch holds the embedding the actor wrote: with reuse_actor_outputs the heads
+    # read it there, and the trunk runs on the next states alone.
+    modules = make_modules()
+    actor, value, baseline, _ = wrap(modules)
+    plain, reused = make_batch(actor), make_batch(actor)
+    options = {"gamma": GAMMA, "lmbda": LMBDA, "reuse_root_values": True}
+    make_loss(actor, value, baseline).make_value_estimator(**options).value_estimator(plain)
+    loss = make_loss(actor, value, baseline).make_value_estimator(
+        **options, reuse_actor_outputs=True
+    )
+    sizes = []  # elements of every call of the trunk
+    hook = modules["trunk"].register_forward_pre_hook(
+        lambda module, args: sizes.append(args[0].shape[:-2].numel())
+    )
+    loss.value_estimator(reused)
+    hook.remove()
+    assert sizes == [3]  # "next" where an episode ends or the batch does
+    for key in ("state_value", "value_target", ("agents", "baseline"), ("agents", "advantage")):
+        torch.testing.assert_close(reused[key], plain[key], **TOLERANCE)
+
+    stale = make_batch(actor)  # what is read is the stored embedding
+    stale["agents", "embedding"] += 1.0
+    loss.value_estimator(stale)
+    assert not torch.allclose(stale["state_value"], plain["state_value"])
+    del stale["agents", "embedding"]
+    with pytest.raises(KeyError, match="reuse_actor_outputs.*'embedding'"):
+        loss.value_estimator(stale)
+
+
 def test_value_normalizer_trains_critics_on_normalised_returns():
     modules = make_modules()
     actor, value, baseline, _ = wrap(modules)

@@ -171,8 +171,7 @@ class _Estimated(Exception):
 
 
 def test_a_compiled_trainer_acts_and_estimates_without_compiling(monkeypatch):
-    # under train.compile, acting (collection and evaluation) and the value-estimation pass run
-    # the networks eagerly: their many input shapes would each cost a compilation
+    # under train.compile, acting and the value-estimation pass run the networks eagerly
     trainer = make_trainer(compile=True)
     torch._dynamo.reset()
     torch._dynamo.utils.counters.clear()
