@@ -109,10 +109,10 @@ def summarize(seed: int, scalars: Path, thresholds: list[float], launch_seconds:
     return {
         "seed": seed,
         "to_goal": to_goal,
-        # each evaluation: env-steps, training seconds, goal fraction (to a hundredth of a
-        # second and four decimals: 128 episodes resolve no finer)
+        # each evaluation: env-steps, training seconds, goal fraction (to a tenth of a second
+        # and four decimals: 128 episodes resolve no finer)
         "curve": [
-            [int(at), round(training_seconds(at), 2), round(goal, 4)] for at, goal, _ in in_loop
+            [int(at), round(training_seconds(at), 1), round(goal, 4)] for at, goal, _ in in_loop
         ],
         "final_goal_fraction": goal_fractions[-1],
         "evaluations": len(evaluations),

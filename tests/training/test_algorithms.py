@@ -217,7 +217,13 @@ def test_advantages_and_returns_are_gae_per_agent_computed_by_hand(algo, normali
     mean = advantage.mean(dim=(0, 1), keepdim=True)
     std = advantage.std(dim=(0, 1), keepdim=True).clamp_min(1e-4)
 
+    sizes = []  # the trunk runs on the states after episode ends and the batch's end alone
+    hook = trainer.networks.trunk.register_forward_pre_hook(
+        lambda module, args: sizes.append(args[0].numel())
+    )
     trainer.algorithm.estimate(data)
+    hook.remove()
+    assert sum(sizes) == (nxt["done"][:, :-1].sum() + data.shape[0]).item()
     torch.testing.assert_close(data["agents", "advantage"], (advantage - mean) / std)
     torch.testing.assert_close(data["agents", "state_value"], value)  # the old value, stored
     stored_target = data["agents", "value_target"]
