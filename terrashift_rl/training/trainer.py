@@ -583,11 +583,10 @@ class OnPolicyTrainer:
         return contextlib.nullcontext()
 
     def _uncompiled(self) -> contextlib.AbstractContextManager:
-        """Where acting and the value-estimation pass run: eagerly under ``config.compile``.
-        Their inputs take other shapes than the update's (collection's, evaluation's, the pass's
-        pieces and its episode ends'), each a compilation of every network: compiled as well,
-        they cost a run about a minute more on an empty cache to save a tenth of an iteration
-        (``docs/benchmarks.md``)."""
+        """Where acting and the value-estimation pass run: eagerly under ``config.compile``, as
+        each of their input shapes (collection's, evaluation's, the pass's pieces) would be a
+        compilation of every network: a minute more per run on an empty cache, to save a tenth
+        of an iteration (``docs/benchmarks.md``)."""
         if self.config.compile:
             return torch.compiler.set_stance("force_eager")
         return contextlib.nullcontext()
