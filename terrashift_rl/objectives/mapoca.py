@@ -286,11 +286,9 @@ class MAPOCAValueEstimator:
     def _stored(self, root: TensorDictBase) -> bool:
         """Whether the critics read the actor's outputs from ``root`` as stored
         (``reuse_actor_outputs``); refuses a batch that lacks them."""
-        loss = self.loss
-        if not (self.reuse_actor_outputs and loss._critics_read_actor_outputs):
+        read = self.loss._actor_outputs_read
+        if not (self.reuse_actor_outputs and read):
             return False
-        written = set(loss.actor_network.det_part.out_keys)
-        read = {*loss.value_network.in_keys, *loss.baseline_network.in_keys} & written
         missing = [key for key in read if key not in root.keys(True)]
         if missing:
             raise KeyError(
@@ -608,10 +606,11 @@ class MAPOCALoss(LossModule):
         self.max_log_ratio = max_log_ratio
         self.team_reward_reduction = team_reward_reduction
         self.value_normalizer = value_normalizer
-        actor_outputs = set(actor_network.det_part.out_keys)
-        self._critics_read_actor_outputs = bool(
-            (set(value_network.in_keys) | set(baseline_network.in_keys)) & actor_outputs
-        )
+        # what the critics read of the actor's outputs (a shared trunk's embedding)
+        self._actor_outputs_read = (
+            set(value_network.in_keys) | set(baseline_network.in_keys)
+        ) & set(actor_network.det_part.out_keys)
+        self._critics_read_actor_outputs = bool(self._actor_outputs_read)
         self._in_keys = None
         # what the last backward pass went through (see _warn_if_baseline_left_out)
         self._backward_reached: dict[str, bool] | None = None
