@@ -8,6 +8,7 @@ import ast
 import csv
 import dataclasses
 import json
+import math
 import os
 import platform
 import shlex
@@ -92,13 +93,26 @@ def device_name(device: torch.device) -> str:
     return platform.processor() or platform.machine()
 
 
+def significant(value, digits: int = 6):
+    """``value`` with every fractional float in it kept to ``digits`` significant digits (no
+    measurement here resolves finer); whole numbers, other types and non-finite floats as
+    they are."""
+    if isinstance(value, float) and math.isfinite(value) and not value.is_integer():
+        return float(f"{value:.{digits}g}")
+    if isinstance(value, dict):
+        return {key: significant(item, digits) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [significant(item, digits) for item in value]
+    return value
+
+
 def write_results(path: Path, payload: dict) -> None:
-    """Writes ``payload`` as compact JSON through a temporary file, so the file is never
-    half-written (scripts call it after every measured row: a run stopped part-way keeps its
-    rows) and the results kept in git stay small."""
+    """Writes ``payload`` as compact JSON, floats to six significant digits, through a
+    temporary file, so the file is never half-written (scripts call it after every measured
+    row: a run stopped part-way keeps its rows) and the results kept in git stay small."""
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(path.name + ".partial")
-    partial.write_text(json.dumps(payload, separators=(",", ":")))
+    partial.write_text(json.dumps(significant(payload), separators=(",", ":")))
     partial.replace(path)
 
 

@@ -2,6 +2,7 @@
 and table."""
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from common import (  # noqa: E402
     run_header,
     table_header,
     table_row,
+    write_results,
 )
 
 
@@ -27,6 +29,20 @@ def test_a_runs_parts_joined_by_plus_make_one_series_in_order(tmp_path):
     steps, values = joined_series(f"{first}+{second}", "reward_per_decision")
     assert steps == [64, 128, 192] and values == [0.1, 0.2, 0.3]
     assert joined_series(str(second), "reward_per_decision") == ([192], [0.3])
+
+
+def test_results_keep_six_significant_digits_and_whole_numbers_exactly(tmp_path):
+    out = tmp_path / "results.json"
+    payload = {"rate": 91234.5678, "steps": 33554432.0, "rows": [[0.123456789, 2], (1e-9 / 3,)]}
+    write_results(out, {**payload, "inf": float("inf"), "name": "a"})
+    assert json.loads(out.read_text()) == {
+        "rate": 91234.6,
+        "steps": 33554432.0,
+        "rows": [[0.123457, 2], [3.33333e-10]],
+        "inf": float("inf"),
+        "name": "a",
+    }
+    assert not list(tmp_path.glob("*.partial"))
 
 
 def test_a_benchmark_prints_a_markdown_table():
