@@ -3,6 +3,7 @@ and table."""
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -33,13 +34,14 @@ def test_a_runs_parts_joined_by_plus_make_one_series_in_order(tmp_path):
 
 def test_results_keep_six_significant_digits_and_whole_numbers_exactly(tmp_path):
     out = tmp_path / "results.json"
-    payload = {"rate": 91234.5678, "steps": 33554432.0, "rows": [[0.123456789, 2], (1e-9 / 3,)]}
-    write_results(out, {**payload, "inf": float("inf"), "name": "a"})
+    rows = [[0.123456789, 2], (1e-9 / 3,)]
+    payload = {"rate": 91234.5678, "steps": 33554432.0, "rows": rows, "inf": math.inf, "name": "a"}
+    write_results(out, payload)
     assert json.loads(out.read_text()) == {
         "rate": 91234.6,
         "steps": 33554432.0,
         "rows": [[0.123457, 2], [3.33333e-10]],
-        "inf": float("inf"),
+        "inf": math.inf,
         "name": "a",
     }
     assert not list(tmp_path.glob("*.partial"))
