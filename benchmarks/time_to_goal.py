@@ -18,7 +18,9 @@ Per seed, from the run's logs:
   iterations of the collection, value-estimation and epoch seconds (``collection_seconds``,
   ``estimation_seconds``, ``epochs_seconds``), which with ``iteration_seconds`` give the split;
 - ``final_goal_fraction``: the last evaluation's; ``curve``: every evaluation's env-steps,
-  training seconds and goal fraction; ``launch_seconds``: the process's wall clock.
+  training seconds and goal fraction; ``launch_seconds``: the process's wall clock;
+- with a curriculum, ``start_scene_goal_fraction``: the last score of its first stage's scene
+  at the target (``curriculum.retention_every``), null if none came.
 
 With ``--stop-at-goal`` a seed's run is stopped, as Ctrl-C stops it (checkpoint written), at its
 first evaluation that reaches every threshold: the times to goal are the same, the GPU is free
@@ -84,6 +86,7 @@ def summarize(seed: int, scalars: Path, thresholds: list[float], launch_seconds:
     _, collection_rates = read_series(scalars, "collection_steps_per_s")
     _, update_seconds = read_series(scalars, "update_seconds")
     _, estimation_seconds = read_series(scalars, "estimation_seconds")
+    _, kept = read_series(scalars, "curriculum_start_eval_goal_fraction")
     if not steps or not eval_steps:
         raise SystemExit(f"{scalars} holds no iterations or no evaluations")
     # an in-loop evaluation runs after its iteration's run_seconds was taken: the seconds of
@@ -106,7 +109,7 @@ def summarize(seed: int, scalars: Path, thresholds: list[float], launch_seconds:
         }
     last = steps[-1]
     iteration_seconds = [frames / rate for rate in rates]
-    return {
+    entry = {
         "seed": seed,
         "to_goal": to_goal,
         # each evaluation: env-steps, training seconds, goal fraction (to a tenth of a second
@@ -129,6 +132,9 @@ def summarize(seed: int, scalars: Path, thresholds: list[float], launch_seconds:
         ),
         "launch_seconds": launch_seconds,
     }
+    if read_series(scalars, "curriculum_stage")[0]:  # a curriculum run
+        entry["start_scene_goal_fraction"] = kept[-1] if kept else None
+    return entry
 
 
 def run_seeds(args: argparse.Namespace, folder: Path) -> tuple[list[dict], bool]:

@@ -266,6 +266,9 @@ def train(
                             f"goal fraction of {metrics['curriculum_eval_goal_fraction']:.3f} "
                             f"at stage {stage + 1})"
                         )
+                    if "curriculum_start_eval_goal_fraction" in metrics:
+                        start = headline(metrics, "curriculum_start_eval_")
+                        log.info(f"stage 1's scene at {trainer.env_steps:,} env-steps: {start}")
                 if eval_env and trainer.iteration % eval_every == 0:
                     metrics.update(evaluate_now("evaluation"))
                     goal_fraction = f"{metrics['eval_goal_fraction']:.3f}"

@@ -63,6 +63,9 @@ RESUME_KEYS = (
 EXECUTION_SETTINGS = ("bf16", "tf32", "compile", "cuda_graphs", "deterministic")
 """Training settings of how the networks execute, not what they learn: a run may resume with
 other values."""
+SCORING_SETTINGS = ("retention_every",)
+"""Curriculum settings of what a run scores, not what it learns (as the run group's
+evaluations): a run may resume with other values."""
 INITIALISATION_SETTINGS = ("initial_action_mean",)
 """Model settings that only set the initial weights, which a checkpoint's weights replace."""
 RETIRED_SETTINGS = {"model_config": ("policy_output_gain",)}
@@ -468,9 +471,9 @@ def check_action_mode(checkpoint: dict, scene: TerraShiftConfig, key: str) -> No
 def check_resumable(resume: dict, configs: dict, *, path: str | Path) -> None:
     """Raises unless the checkpoint ``resume`` (at ``path``) was trained with ``configs``
     (``env_config``, ``model_config``, ``train_config``, ``curriculum_config``: env, model,
-    train, loss and curriculum settings, execution and initialisation settings aside), naming
-    the overrides that would continue it. A checkpoint from before the curriculum was trained
-    without one."""
+    train, loss and curriculum settings; execution, scoring and initialisation ones aside),
+    naming the overrides that would continue it. A checkpoint from before the curriculum was
+    trained without one."""
     differ = []
     train, saved_train = dict(configs["train_config"]), dict(resume["train_config"])
     loss, saved_loss = train.pop("loss"), saved_train.pop("loss")
@@ -489,7 +492,7 @@ def check_resumable(resume: dict, configs: dict, *, path: str | Path) -> None:
         ),
     ):
         for key, value in now.items():
-            if saved.get(key) != value and key not in EXECUTION_SETTINGS:
+            if saved.get(key) != value and key not in (*EXECUTION_SETTINGS, *SCORING_SETTINGS):
                 differ.append(override(f"{group}.{key}", saved.get(key)))
     if differ:
         raise ValueError(

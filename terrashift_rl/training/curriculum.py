@@ -282,7 +282,8 @@ class CurriculumHook(TrainerHook):
     Checkpoints hold the stage and the simulators of every scene in the mix, so a resumed run
     continues at the same stage in the same episodes. :meth:`after_iteration`, called by every
     process after each iteration, scores the current stage every ``eval_every`` iterations
-    until the target and advances every process together when it passes the threshold.
+    until the target and advances every process together when it passes the threshold; at the
+    target it scores the first stage's scene every ``retention_every`` iterations.
 
     Args:
         curriculum: the stages and the run's place in them.
@@ -321,14 +322,21 @@ class CurriculumHook(TrainerHook):
         evaluating process) and, if that passes the threshold, starts the next stage on every
         process at once (the environments take its mix and the trainer starts new episodes).
         Returns the metrics to log: ``curriculum_stage`` (from 1, after any advance) and the
-        scores, ``curriculum_eval_goal_fraction``, ...."""
+        scores, ``curriculum_eval_goal_fraction``, ...; at the target, every
+        ``retention_every`` iterations, the first stage's: ``curriculum_start_eval_...``."""
         curriculum = self.curriculum
         stage = {"curriculum_stage": float(curriculum.stage + 1)}
-        if curriculum.final or trainer.iteration % curriculum.settings.eval_every:
+        if curriculum.final:
+            every = curriculum.settings.retention_every
+            if self.make_evaluation_env is None or every is None or trainer.iteration % every:
+                return stage
+            scores = self._evaluate(trainer, 0)
+            return {**stage, **{f"curriculum_start_{name}": v for name, v in scores.items()}}
+        if trainer.iteration % curriculum.settings.eval_every:
             return stage
         scores, passed = {}, False
         if self.make_evaluation_env is not None:
-            scores = self._evaluate(trainer)
+            scores = self._evaluate(trainer, curriculum.stage)
             passed = curriculum.passes(scores["eval_goal_fraction"])
         if distributed.any_process(passed, "the next curriculum stage"):
             curriculum.advance(env_steps=trainer.env_steps)
@@ -339,10 +347,9 @@ class CurriculumHook(TrainerHook):
             **{f"curriculum_{name}": value for name, value in scores.items()},
         }
 
-    def _evaluate(self, trainer: OnPolicyTrainer) -> dict[str, float]:
-        stage = self.curriculum.stage
+    def _evaluate(self, trainer: OnPolicyTrainer, stage: int) -> dict[str, float]:
         if self._evaluation is None or self._evaluation[0] != stage:
-            self._evaluation = (stage, self.make_evaluation_env(self.curriculum.scene))
+            self._evaluation = (stage, self.make_evaluation_env(self.curriculum.scenes[stage]))
         return evaluate_periodically(
             self._evaluation[1],
             self.actor,

@@ -15,8 +15,7 @@ group          settings
                group
 ``run``        :class:`RunConfig` (seed, length, checkpoints, evaluations)
 ``logger``     :class:`LoggerConfig`
-``curriculum`` :class:`CurriculumSettings` (stages from a
-               small scene to ``env``'s)
+``curriculum`` :class:`CurriculumSettings` (stages from a small scene to ``env``'s)
 ============== ===============================================================================
 
 :class:`RecipeConfig` is the training recipes' whole config and :class:`EvaluateConfig` the
@@ -105,10 +104,8 @@ class TrainConfig:
     the loss's (``loss``, the algorithm's own settings class).
 
     Start/end pairs are linear schedules over ``schedule_iterations`` updates. The defaults
-    (2,048 environments, 2 epochs of 8 mini-batches, learning rates 1e-3 / 6e-4, a constant
-    entropy coefficient of 0.002, schedules over 1,000 updates) suit thousands of environments
-    on one GPU; Table 1's (``recipes/configs/mapoca_paper.yaml``) suit them poorly
-    (docs/experiments.md).
+    suit thousands of environments on one GPU; Table 1's (``recipes/configs/mapoca_paper.yaml``)
+    suit them poorly (docs/experiments.md).
 
     Example:
         >>> TrainConfig(num_envs=4, minibatches=8)  # doctest: +ELLIPSIS
@@ -350,6 +347,9 @@ class CurriculumSettings:
     """Iterations between the evaluations of the current stage that decide an advance
     (evaluation mode, ``run.eval_episodes`` episodes of ``run.eval_seed``'s scenes); none once
     the target is reached (``run.eval_every`` scores the target throughout)."""
+    retention_every: int | None = setting(50, at_least(1), null="never")
+    """Iterations between evaluations of the first stage's scene once the target is reached,
+    logged as ``curriculum_start_eval_*``: what the run keeps of where it started."""
     mix: float = setting(0.25, interval(0, 1, high_open=True))
     """Fraction of the training environments kept on earlier stages once there are any,
     spread evenly over them."""

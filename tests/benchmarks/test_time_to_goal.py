@@ -23,18 +23,23 @@ def write_series(folder: Path, metric: str, rows: list[tuple[float, float]]) -> 
     (folder / f"{metric}.csv").write_text("".join(f"{step},{value}\n" for step, value in rows))
 
 
-def test_seconds_to_goal_leave_out_the_evaluations_before(tmp_path):
-    # four iterations of 100 env-steps, 10 s each, with an evaluation of 5 s after the 2nd and
-    # the 4th: the loop's clock reads 10, 20, 35, 45 s when each iteration ends
+def write_run(folder: Path) -> list[int]:
+    """Four iterations of 100 env-steps, 10 s each, with an evaluation of 5 s after the 2nd and
+    the 4th: the loop's clock reads 10, 20, 35, 45 s when each iteration ends."""
     steps = [100, 200, 300, 400]
     clock = [10.0, 20.0, 35.0, 45.0]
-    write_series(tmp_path, "run_seconds", list(zip(steps, clock, strict=True)))
-    write_series(tmp_path, "eval_goal_fraction", [(200, 0.92), (400, 0.96)])
-    write_series(tmp_path, "eval_seconds", [(200, 5.0), (400, 5.0)])
-    write_series(tmp_path, "env_steps_per_s", [(step, 10.0) for step in steps])
-    write_series(tmp_path, "collection_steps_per_s", [(step, 50.0) for step in steps])
-    write_series(tmp_path, "update_seconds", [(step, 8.0) for step in steps])
-    write_series(tmp_path, "estimation_seconds", [(step, 1.0) for step in steps])
+    write_series(folder, "run_seconds", list(zip(steps, clock, strict=True)))
+    write_series(folder, "eval_goal_fraction", [(200, 0.92), (400, 0.96)])
+    write_series(folder, "eval_seconds", [(200, 5.0), (400, 5.0)])
+    write_series(folder, "env_steps_per_s", [(step, 10.0) for step in steps])
+    write_series(folder, "collection_steps_per_s", [(step, 50.0) for step in steps])
+    write_series(folder, "update_seconds", [(step, 8.0) for step in steps])
+    write_series(folder, "estimation_seconds", [(step, 1.0) for step in steps])
+    return steps
+
+
+def test_seconds_to_goal_leave_out_the_evaluations_before(tmp_path):
+    write_run(tmp_path)
     entry = summarize(3, tmp_path, [0.95, 0.9, 0.99], launch_seconds=70.0)
     assert entry["to_goal"]["0.9"] == {"seconds": 20.0, "env_steps": 200}
     assert entry["to_goal"]["0.95"] == {"seconds": 40.0, "env_steps": 400}  # 45 less 5
@@ -45,6 +50,15 @@ def test_seconds_to_goal_leave_out_the_evaluations_before(tmp_path):
     assert entry["curve"] == [[200, 20.0, 0.92], [400, 40.0, 0.96]]
     assert (entry["iteration_seconds"], entry["collection_seconds"]) == (10.0, 2.0)
     assert (entry["estimation_seconds"], entry["epochs_seconds"]) == (1.0, 7.0)
+    assert "start_scene_goal_fraction" not in entry  # no curriculum
+
+
+def test_a_curriculum_runs_entry_keeps_the_last_score_of_its_first_stage(tmp_path):
+    steps = write_run(tmp_path)
+    write_series(tmp_path, "curriculum_stage", [(step, 1.0 + (step > 200)) for step in steps])
+    assert summarize(3, tmp_path, [0.9], launch_seconds=70.0)["start_scene_goal_fraction"] is None
+    write_series(tmp_path, "curriculum_start_eval_goal_fraction", [(300, 0.97), (400, 0.95)])
+    assert summarize(3, tmp_path, [0.9], launch_seconds=70.0)["start_scene_goal_fraction"] == 0.95
 
 
 @pytest.mark.slow

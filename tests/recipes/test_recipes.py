@@ -236,12 +236,16 @@ def test_a_curriculum_run_advances_a_stage_and_checkpoints_it(tmp_path):
         *CURRICULUM,
         "curriculum.stages=2",
         "curriculum.eval_every=1",
+        "curriculum.retention_every=1",
         "run.total_env_steps=64",
         "hydra.run.dir=a",
         cwd=tmp_path,
     )
     assert result.returncode == 0, result.stderr
     assert "stage 2/2: 8x8 columns, 4 agents, 2 spheres from 32 env-steps" in result.stdout
+    # at the target, the first stage's scene is scored again (every iteration here)
+    assert "stage 1's scene at 32 env-steps" not in result.stdout
+    assert "stage 1's scene at 64 env-steps: goal fraction" in result.stdout
     saved = load_checkpoint(tmp_path / "a/checkpoints/last.pt")
     assert saved["curriculum"] == {"stage": 1, "advances": [32], "scenes": [[6, 2, 1], [8, 4, 2]]}
     assert saved["curriculum_config"]["kind"] == "auto"
@@ -817,6 +821,8 @@ def test_resume_with_another_curriculum_names_it():
         check_resumable(saved, configs, path="last.pt")
     earlier = {key: value for key, value in configs.items() if key != "curriculum_config"}
     check_resumable(earlier, configs, path="last.pt")  # saved before the curriculum: none
+    other_scoring = configs_of(compose_config("smoke", "curriculum.retention_every=7"))
+    check_resumable(other_scoring, configs, path="last.pt")  # what is scored may change
 
 
 @pytest.mark.slow

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -15,8 +16,14 @@ from terrashift_rl.envs.mixed import MixedSceneEnv
 from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
 from terrashift_rl.objectives import ValueNormalizer
 from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.training import curriculum as curriculum_module
 from terrashift_rl.training.algorithms import MAPOCAConfig
-from terrashift_rl.training.curriculum import Curriculum, make_curriculum_env, stage_scenes
+from terrashift_rl.training.curriculum import (
+    Curriculum,
+    CurriculumHook,
+    make_curriculum_env,
+    stage_scenes,
+)
 from terrashift_rl.training.settings import CurriculumSettings
 
 
@@ -66,6 +73,36 @@ def test_a_stage_advances_when_an_evaluation_reaches_the_threshold_and_not_befor
     assert curriculum.describe() == "stage 3/3: 45x45 columns, 24 agents, 8 spheres"
     # threshold 0: every evaluation advances (eval_every iterations per stage)
     assert Curriculum(curriculum.scene, CurriculumSettings(threshold=0.0)).passes(0.0)
+
+
+def test_the_hook_scores_the_current_stage_then_at_the_target_the_first_stage(monkeypatch):
+    scored = []  # the scenes evaluated (the evaluation "env" below is its scene)
+
+    def evaluate(env, actor, **kwargs):
+        scored.append(env)
+        return {"eval_goal_fraction": 0.5}
+
+    monkeypatch.setattr(curriculum_module, "evaluate_periodically", evaluate)
+    settings = CurriculumSettings(eval_every=2, retention_every=3)
+    curriculum = Curriculum(TerraShiftConfig.preset("large"), settings)
+    hook = CurriculumHook(curriculum, None, lambda scene: scene, None, seed=0, eval_seed=1)
+    trainer = SimpleNamespace(evaluation_policy=None)
+
+    def after(iteration):
+        trainer.iteration = iteration
+        return hook.after_iteration(trainer)
+
+    assert after(1) == {"curriculum_stage": 1.0}
+    assert after(2) == {"curriculum_stage": 1.0, "curriculum_eval_goal_fraction": 0.5}
+    assert scored == [curriculum.scenes[0]] and curriculum.stage == 0  # 0.5 < 0.8: no advance
+    curriculum.advance(env_steps=100)
+    curriculum.advance(env_steps=200)
+    assert [after(i) for i in (4, 5)] == [{"curriculum_stage": 3.0}] * 2
+    # at the target, every 3 iterations: the first stage's scene, not the target's
+    assert after(6) == {"curriculum_stage": 3.0, "curriculum_start_eval_goal_fraction": 0.5}
+    assert scored == [curriculum.scenes[0]] * 2 and scored[-1].grid_size == 15
+    curriculum.settings = dataclasses.replace(settings, retention_every=None)
+    assert after(9) == {"curriculum_stage": 3.0} and len(scored) == 2
 
 
 # --- mix -----------------------------------------------------------------------------------
@@ -200,6 +237,11 @@ def test_a_resumed_curriculum_continues_at_the_same_stage():
         ),
         ({"grid_size": 30}, {"kind": "manual"}, "curriculum.kind must be one of"),
         ({"grid_size": 30}, {"eval_every": 0}, "curriculum.eval_every must be an integer >= 1"),
+        (
+            {"grid_size": 30},
+            {"retention_every": 0},
+            r"curriculum.retention_every must be .* or null",
+        ),
     ],
 )
 def test_an_inconsistent_curriculum_is_refused_naming_the_setting(target, settings, message):
