@@ -20,7 +20,7 @@ import json
 import math
 from pathlib import Path
 
-from common import benchmark_parser, read_evaluations, read_series, run_label
+from common import benchmark_parser, read_evaluations, read_series, run_label, significant
 from omegaconf import OmegaConf
 
 
@@ -38,10 +38,6 @@ def bin_means(values: list[float], size: int, tail: int) -> list[float]:
 def bin_steps(steps: list[float], size: int, tail: int) -> list[float]:
     head = len(steps) - tail
     return [steps[min(i + size, head) - 1] for i in range(0, head, size)] + steps[head:]
-
-
-def rounded(value: float) -> float:
-    return float(f"{value:.4g}") if math.isfinite(value) else value
 
 
 def summarize(folder: Path, *, name: str, points: int, tail: int, **meta: str | None) -> dict:
@@ -67,11 +63,10 @@ def summarize(folder: Path, *, name: str, points: int, tail: int, **meta: str | 
     for path in sorted(folder.glob("*.csv")):
         metric_steps, values = read_series(folder, path.stem)
         if metric_steps == steps:
-            summary["series"][path.stem] = [rounded(v) for v in bin_means(values, size, tail)]
+            summary["series"][path.stem] = significant(bin_means(values, size, tail), 4)
         else:
-            summary["sparse"][path.stem] = [
-                [int(s), rounded(v)] for s, v in zip(metric_steps, values, strict=True)
-            ]
+            points = [[int(s), v] for s, v in zip(metric_steps, values, strict=True)]
+            summary["sparse"][path.stem] = significant(points, 4)
     return summary
 
 
