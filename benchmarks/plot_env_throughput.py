@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from common import benchmark_parser
+from common import benchmark_parser, save_palette_png
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
@@ -19,7 +19,7 @@ def main() -> None:
     parser.add_argument("results", nargs="+", type=Path, help="env_throughput JSON files")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
-    figure = Figure(figsize=(6.4, 4.0), layout="constrained")
+    figure = Figure(figsize=(6.4, 4.0), dpi=110, layout="constrained")
     FigureCanvasAgg(figure)
     ax = figure.subplots()
     for path in args.results:
@@ -39,9 +39,7 @@ def main() -> None:
     ax.set_title(f"pretrain scene, {result['date']}")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(args.out, dpi=110)
-    print(f"wrote {args.out}")
+    save_palette_png(figure, args.out)
 
 
 if __name__ == "__main__":
