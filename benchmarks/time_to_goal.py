@@ -86,7 +86,6 @@ def summarize(seed: int, scalars: Path, thresholds: list[float], launch_seconds:
     _, collection_rates = read_series(scalars, "collection_steps_per_s")
     _, update_seconds = read_series(scalars, "update_seconds")
     _, estimation_seconds = read_series(scalars, "estimation_seconds")
-    _, kept = read_series(scalars, "curriculum_start_eval_goal_fraction")
     if not steps or not eval_steps:
         raise SystemExit(f"{scalars} holds no iterations or no evaluations")
     # an in-loop evaluation runs after its iteration's run_seconds was taken: the seconds of
@@ -133,6 +132,7 @@ def summarize(seed: int, scalars: Path, thresholds: list[float], launch_seconds:
         "launch_seconds": launch_seconds,
     }
     if read_series(scalars, "curriculum_stage")[0]:  # a curriculum run
+        _, kept = read_series(scalars, "curriculum_start_eval_goal_fraction")
         entry["start_scene_goal_fraction"] = kept[-1] if kept else None
     return entry
 

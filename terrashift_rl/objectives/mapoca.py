@@ -610,7 +610,6 @@ class MAPOCALoss(LossModule):
         self._actor_outputs_read = (
             set(value_network.in_keys) | set(baseline_network.in_keys)
         ) & set(actor_network.det_part.out_keys)
-        self._critics_read_actor_outputs = bool(self._actor_outputs_read)
         self._in_keys = None
         # what the last backward pass went through (see _warn_if_baseline_left_out)
         self._backward_reached: dict[str, bool] | None = None
@@ -695,7 +694,7 @@ class MAPOCALoss(LossModule):
             keys = self.tensor_keys
             written = set(self.actor_network.det_part.out_keys)
             value_inputs = [*self.value_network.in_keys]
-            if self._critics_read_actor_outputs:
+            if self._actor_outputs_read:
                 value_inputs += self.actor_network.in_keys
             value_inputs = [key for key in value_inputs if key not in written]
             network_inputs = [
@@ -939,7 +938,7 @@ class MAPOCALoss(LossModule):
         self, tensordict: TensorDictBase, *, with_baseline: bool, run_actor: bool = True
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """V [*B, 1] and, if asked, b [*B, K, 1] on ``tensordict``, which receives the outputs."""
-        if run_actor and self._critics_read_actor_outputs:
+        if run_actor and self._actor_outputs_read:
             self.actor_network.get_dist_params(tensordict)
         keys = self.tensor_keys
         team_shape = [*tensordict.batch_size, 1]
