@@ -18,6 +18,11 @@ table and writes JSON.
 operators of most device time (CPU time on CPU), which go into the JSON too. Profile eager
 settings: kernels replayed from a CUDA graph are not attributed to operators.
 
+``--recipe`` times instead the pretraining recipe's own setting (its scene, network and
+training settings, with ``--overrides``), as one more row.
+
+    python benchmarks/train_throughput.py --recipe --overrides train.steps_per_iteration=32
+
 ``--parts`` profiles instead one update of the pretraining recipe's own setting (its scene,
 network and training settings, with ``--overrides``), eagerly, after ``--warmup`` iterations:
 the device time of each network part's forward and backward passes (backward kernels are
@@ -136,7 +141,13 @@ def measure(setting: dict, args: argparse.Namespace, device: torch.device) -> di
         device=device,
         seed=0,
     )
-    trainer = make_trainer(env, networks, config)
+    return {**setting, **time_iterations(make_trainer(env, networks, config), args)}
+
+
+def time_iterations(trainer: OnPolicyTrainer, args: argparse.Namespace) -> dict:
+    """``args.warmup`` untimed iterations of ``trainer``, then the medians of ``args.iters``
+    timed ones (and ``--profile``'s operators)."""
+    device, config = trainer.device, trainer.config
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     start = time.perf_counter()
@@ -150,7 +161,6 @@ def measure(setting: dict, args: argparse.Namespace, device: torch.device) -> di
         return statistics.median(row[name] for row in rows)
 
     result = {
-        **setting,
         "steps_per_iteration": config.steps_per_iteration,
         "warmup_iterations": args.warmup,
         "warmup_seconds": warmup_seconds,
@@ -375,7 +385,16 @@ def main() -> None:
         help="profile one update of the pretraining recipe's setting by network part",
     )
     parser.add_argument(
-        "--overrides", nargs="+", default=[], metavar="KEY=VALUE", help="recipe overrides (--parts)"
+        "--recipe",
+        action="store_true",
+        help="time the pretraining recipe's own setting (its scene, network and training)",
+    )
+    parser.add_argument(
+        "--overrides",
+        nargs="+",
+        default=[],
+        metavar="KEY=VALUE",
+        help="recipe overrides (--recipe, --parts)",
     )
     parser.add_argument(
         "--out", type=Path, default=Path(__file__).parent / "results" / "train_throughput.json"
@@ -388,6 +407,9 @@ def main() -> None:
     name = device_name(device)
     if args.parts:
         profile_recipe_update(args, device, name)
+        return
+    if args.recipe:
+        time_recipe(args, device, name)
         return
     fields = "".join(f" {field}={value}" for field, value in args.model.items())
     mode = ", deterministic algorithms" if args.deterministic else ""
@@ -409,6 +431,26 @@ def main() -> None:
         payload["rows"].append(measure(setting, args, device))
         print(format_row(payload["rows"][-1]), flush=True)
         write_results(args.out, payload)
+    print(f"wrote {args.out}")
+
+
+def time_recipe(args: argparse.Namespace, device: torch.device, name: str) -> None:
+    """``--recipe``: the pretraining recipe's own trainer (with ``--overrides``) timed as a
+    setting is."""
+    trainer = recipe_trainer([f"run.device={device.type}", *args.overrides], device)
+    print(f"pretraining recipe ({' '.join(args.overrides) or 'defaults'}), {name}")
+    config, cuda = trainer.config, device.type == "cuda"
+    row = {
+        "num_envs": config.num_envs,
+        "epochs": config.epochs,
+        "minibatches": config.minibatches,
+        "precision": "bf16" if config.bf16 and cuda else "tf32" if config.tf32 and cuda else "fp32",
+        "execution": ("compiled-" if config.compile else "")
+        + ("graphs" if config.cuda_graphs and cuda else "eager"),
+        **time_iterations(trainer, args),
+    }
+    print(format_row(row))
+    write_results(args.out, {**run_header(device), "overrides": args.overrides, "rows": [row]})
     print(f"wrote {args.out}")
 
 

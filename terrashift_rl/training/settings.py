@@ -258,6 +258,7 @@ class RunConfig:
         [
             "model=small",
             "train.num_envs=32",
+            "train.steps_per_iteration=32",
             "train.compile=false",
             "run.eval_episodes=16",
             "run.minutes=5",

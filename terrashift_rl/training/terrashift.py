@@ -38,6 +38,7 @@ from terrashift_rl.training.settings import TrainConfig
 from terrashift_rl.training.trainer import OnPolicyTrainer, TrainerHook
 
 __all__ = [
+    "COMPILE_OPTIONS",
     "ActionCheck",
     "SceneMetrics",
     "ScriptedTeacher",
@@ -51,6 +52,12 @@ __all__ = [
     "make_training_env",
     "terrashift_hooks",
 ]
+
+COMPILE_OPTIONS: dict[str, Any] = {"post_grad_fusion_options": {"decompose_mm_pass": {}}}
+"""Inductor options of ``train.compile``: batched matrix products whose batch is large and whose
+other sizes are small (attention over sets of 4 to 16 tokens, 16 channels a head) become fused
+multiply-and-sum kernels instead of cuBLAS batched products in tiles mostly empty (on CUDA only;
+Inductor's ``decompose_mm_pass`` and its thresholds)."""
 
 
 def check_scene(env_config: TerraShiftConfig, networks: TerraShiftNetworks) -> None:
@@ -126,9 +133,9 @@ def make_trainer(
     max_batch = min(config.num_envs, 4 * math.ceil(config.num_envs / config.minibatches))
     algorithm = config.loss.make(networks, max_batch=max_batch)
     if config.compile:
-        networks.compile_networks()
+        networks.compile_networks(options=COMPILE_OPTIONS)
         for head in algorithm.networks.values():
-            head.module.compile()
+            head.module.compile(options=COMPILE_OPTIONS)
     policy_parameters = [*networks.trunk.parameters(), *networks.policy_head.parameters()]
     critic_parameters = [p for critic in algorithm.critics for p in critic.parameters()]
     optimizer = torch.optim.AdamW(

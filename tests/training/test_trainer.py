@@ -19,6 +19,7 @@ from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
 from terrashift_rl.envs.baselines import ScriptedHeuristicPolicy
 from terrashift_rl.modules import TerraShiftModelConfig, keys, make_terrashift_networks
+from terrashift_rl.modules.layers import MultiHeadAttention
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.sim.types import ACTION_NAMES
 from terrashift_rl.training import (
@@ -714,3 +715,26 @@ def test_terrashift_hooks_follow_the_settings():
         "SimulatorState",
         "SceneMetrics",
     ]
+
+
+@pytest.mark.gpu
+def test_compiled_attention_over_small_sets_is_multiplied_and_summed_as_eager():
+    # a window's self-attention of a mini-batch: 16 tokens of 4 heads x 16 channels, whose
+    # batched products COMPILE_OPTIONS turns into fused multiply-and-sum kernels (in float32,
+    # so eager's products are compared without TF32, which trainers switch on process-wide)
+    tf32 = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = False
+    try:
+        torch.manual_seed(0)
+        attention = MultiHeadAttention(64, 4).to(CUDA)
+        compiled = copy.deepcopy(attention)
+        compiled.compile(options=terrashift.COMPILE_OPTIONS)
+        torch._dynamo.utils.counters.clear()
+        tokens = torch.randn(4096, 16, 64, device=CUDA, requires_grad=True)
+        outputs = [module(tokens, tokens) for module in (attention, compiled)]
+        grads = [torch.autograd.grad(out.square().sum(), tokens)[0] for out in outputs]
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = tf32
+    assert torch._dynamo.utils.counters["inductor"]["decompose_bmm"] >= 2  # forward's two
+    torch.testing.assert_close(outputs[1], outputs[0], atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(grads[1], grads[0], atol=1e-3, rtol=1e-3)
