@@ -55,9 +55,9 @@ __all__ = [
 
 COMPILE_OPTIONS: dict[str, Any] = {"post_grad_fusion_options": {"decompose_mm_pass": {}}}
 """Inductor options of ``train.compile``: batched matrix products whose batch is large and whose
-other sizes are small (attention over sets of 4 to 16 tokens, 16 channels a head) become fused
-multiply-and-sum kernels instead of cuBLAS batched products in tiles mostly empty (on CUDA only;
-Inductor's ``decompose_mm_pass`` and its thresholds)."""
+other sizes are small (the attention over sets of 4 to 16 tokens) become fused multiply-and-sum
+kernels instead of cuBLAS batched products in tiles mostly empty (on CUDA only; Inductor's
+``decompose_mm_pass`` and its thresholds)."""
 
 
 def check_scene(env_config: TerraShiftConfig, networks: TerraShiftNetworks) -> None:

@@ -74,7 +74,7 @@ def test_the_groups_default_to_their_settings_classes_defaults():
     settings = RecipeConfig.of(compose_config("mapoca_pretrain", "model=table1"))
     # train=default is TrainConfig's, with compiled networks (off in the settings class, which
     # also serves CPU-sized and library use) and 4,096 environments of 16 decisions (2,048 of
-    # 32 there, which train=table1, train=throughput and the pixel and finetuning recipes keep)
+    # 32 there, which train=table1 and train=throughput keep)
     assert settings.train == dataclasses.replace(
         TrainConfig(), compile=True, num_envs=4096, steps_per_iteration=16
     )
@@ -138,10 +138,7 @@ def test_the_finetune_recipe_differs_from_pretraining_in_its_scene_warm_up_and_k
     assert config.critic_warmup_iterations * config.num_envs * config.steps_per_iteration >= 5e5
     assert config.lr_schedule == "adaptive" and config.desired_kl < TrainConfig().desired_kl
     assert not config.compile  # runs of minutes: no first compilation
-    # the batch shape it was measured with
-    assert (config.num_envs, config.steps_per_iteration) == (2048, 32)
     changed = {"compile", "critic_warmup_iterations", "lr_schedule", "desired_kl"}
-    changed |= {"num_envs", "steps_per_iteration"}
     expected = dataclasses.replace(
         pretrain_settings.train, **{name: getattr(config, name) for name in changed}
     )
