@@ -87,7 +87,7 @@ PRECISIONS = ("fp32", "tf32", "bf16")  # tf32: float32 with TensorFloat-32 matri
 # compiled: torch.compile without CUDA graphs; compiled-graphs: compiled networks replayed in them
 EXECUTIONS = ("eager", "graphs", "compiled", "compiled-graphs")
 DEFAULT_SETTINGS = [
-    "2048:2:8:fp32:graphs",  # the default recipe
+    "2048:2:8:fp32:graphs",  # TrainConfig's batch (--recipe times the recipe's own setting)
     "2048:2:8:fp32:eager",
     "4096:2:8:fp32:eager",
     "4096:2:8:bf16:compiled",
