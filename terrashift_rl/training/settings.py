@@ -268,9 +268,8 @@ class RunConfig:
     )
     """With ``device=auto`` and no CUDA device, these overrides size the run for a CPU (first
     iteration in seconds, uncompiled, under 1 GB, five minutes, one thread), each unless the
-    command line sets its key or group; a run from a checkpoint (resume, pretrained) builds
-    that checkpoint's model instead of ``model=small``. ``device=cpu`` keeps the configured
-    sizes."""
+    command line sets its key or group; a run from a checkpoint (resume, pretrained) builds that
+    checkpoint's model instead of ``model=small``. ``device=cpu`` keeps the configured sizes."""
     threads: int | None = setting(None, at_least(1), null="torch's default")
     """Threads of torch's operators on the CPU (``torch.set_num_threads``). The CPU-sized run
     takes one: its networks are too small to share out, and on cores that other programs use
