@@ -73,10 +73,10 @@ def test_every_group_option_composes_into_its_dataclass(group, option):
 def test_the_groups_default_to_their_settings_classes_defaults():
     settings = RecipeConfig.of(compose_config("mapoca_pretrain", "model=table1"))
     # train=default is TrainConfig's, with compiled networks (off in the settings class, which
-    # also serves CPU-sized and library use) and 4,096 environments of 16 decisions (the class
+    # also serves CPU-sized and library use) and 8,192 environments of 8 decisions (the class
     # keeps 2,048 of 32, on which train=table1 and train=throughput build)
     assert settings.train == dataclasses.replace(
-        TrainConfig(), compile=True, num_envs=4096, steps_per_iteration=16
+        TrainConfig(), compile=True, num_envs=8192, steps_per_iteration=8
     )
     assert settings.model == TerraShiftModelConfig()
     assert settings.run == RunConfig()
