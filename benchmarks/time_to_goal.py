@@ -32,7 +32,9 @@ and kept, marked ``interrupted``.
 
 The JSON holds ``device``, ``date``, ``command``, ``seeds`` (one entry per seed), the medians over
 seeds ``env_steps_per_s`` and ``median_seconds_to_goal`` (to the first threshold; null unless
-more than half the seeds reached it) and prints a table.
+more than half the seeds reached it) and ``inductor_cache``, the compile cache's folder and the
+files it held at the start (a compiled update found there loads in seconds, compiling it takes
+about a minute: the seconds to goal differ by that much), and prints a table.
 
     python benchmarks/time_to_goal.py --seeds 7 8 9 10 --minutes 8
     python benchmarks/time_to_goal.py --seeds 7 --processes 4 --minutes 4   # 4 GPUs, one seed
@@ -55,7 +57,15 @@ import time
 from pathlib import Path
 
 import torch
-from common import benchmark_parser, read_series, run_header, table_header, table_row, write_results
+from common import (
+    benchmark_parser,
+    inductor_cache,
+    read_series,
+    run_header,
+    table_header,
+    table_row,
+    write_results,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ROOT / "recipes" / "mapoca_pretrain.py"
@@ -339,6 +349,8 @@ def main() -> None:
     ]
     print(f"time to goal: {header['device']}, {len(args.seeds)} seed(s) of {args.minutes:g} min")
     print(f"each: {shlex.join(example)}")
+    cache = inductor_cache()
+    print(f"Inductor's cache at the start: {cache['folder']}, {cache['files']:,} files")
     goals = [f"to {t:g}: s, env-steps" for t in args.thresholds]
     columns = ["seed", *goals, "final", "env-steps/s", "collect / estimate / epochs s", "eval s"]
     print(table_header(columns))
@@ -361,6 +373,7 @@ def main() -> None:
     payload = {
         **header,
         "recipe_command": shlex.join(example),
+        "inductor_cache": cache,
         "minutes": args.minutes,
         "eval_every": args.eval_every,
         "thresholds": args.thresholds,

@@ -43,7 +43,14 @@ import time
 from pathlib import Path
 
 import torch
-from common import benchmark_parser, device_name, field_parser, run_header, write_results
+from common import (
+    benchmark_parser,
+    device_name,
+    field_parser,
+    inductor_cache,
+    run_header,
+    write_results,
+)
 from hydra import compose, initialize_config_dir
 from torch.autograd import DeviceType
 
@@ -422,6 +429,7 @@ def main() -> None:
     )
     payload = {
         **run_header(device),
+        "inductor_cache": inductor_cache(),
         "preset": args.preset,
         "model": args.model,
         "deterministic": args.deterministic,
@@ -437,6 +445,7 @@ def main() -> None:
 def time_recipe(args: argparse.Namespace, device: torch.device, name: str) -> None:
     """``--recipe``: the pretraining recipe's own trainer (with ``--overrides``) timed as a
     setting is."""
+    cache = inductor_cache()
     trainer = recipe_trainer([f"run.device={device.type}", *args.overrides], device)
     print(f"pretraining recipe ({' '.join(args.overrides) or 'defaults'}), {name}")
     config, cuda = trainer.config, device.type == "cuda"
@@ -450,7 +459,8 @@ def time_recipe(args: argparse.Namespace, device: torch.device, name: str) -> No
         **time_iterations(trainer, args),
     }
     print(format_row(row))
-    write_results(args.out, {**run_header(device), "overrides": args.overrides, "rows": [row]})
+    payload = {**run_header(device), "inductor_cache": cache, "overrides": args.overrides}
+    write_results(args.out, {**payload, "rows": [row]})
     print(f"wrote {args.out}")
 
 

@@ -14,6 +14,7 @@ import torch  # noqa: E402
 from common import (  # noqa: E402
     benchmark_parser,
     field_parser,
+    inductor_cache,
     joined_series,
     run_header,
     table_header,
@@ -77,3 +78,20 @@ def test_field_overrides_parse_literals_and_refuse_unknown_fields_and_non_litera
         parse("bogus=1")
     with pytest.raises(argparse.ArgumentTypeError, match="not a Python literal"):
         parse("num_objects=x")
+
+
+def test_the_inductor_cache_is_the_folder_torch_compiles_into_with_its_files_counted(
+    tmp_path, monkeypatch
+):
+    from torch._inductor.runtime.cache_dir_utils import cache_dir
+
+    folder = tmp_path / "inductor"
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(folder))
+    assert inductor_cache() == {"folder": str(folder), "files": 0}  # not made yet
+    (folder / "fxgraph" / "ab").mkdir(parents=True)
+    (folder / "fxgraph" / "ab" / "entry").write_bytes(b"graph")
+    (folder / "triton").mkdir()
+    assert inductor_cache() == {"folder": str(folder), "files": 1}  # files, not folders
+    assert inductor_cache()["folder"] == cache_dir()
+    monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR")  # torch's default, which cache_dir() sets
+    assert inductor_cache()["folder"] == cache_dir()

@@ -4,6 +4,7 @@ Ctrl-C and past its minutes."""
 
 import argparse
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -65,14 +66,17 @@ def test_a_curriculum_runs_entry_keeps_the_last_score_of_its_first_stage(tmp_pat
 def test_the_smoke_setting_runs_two_seeds_on_the_cpu(tmp_path):
     out = tmp_path / "time_to_goal.json"
     command = [sys.executable, str(SCRIPT), "--smoke", "--seeds", "0", "1", "--minutes", "0.1"]
+    cache = tmp_path / "inductor"  # empty: the runs' compilation would start afresh
     result = subprocess.run(
         [*command, "--eval-every", "1", "--thresholds", "0", "--out", str(out)],
         capture_output=True,
         text=True,
         timeout=600,
+        env={**os.environ, "TORCHINDUCTOR_CACHE_DIR": str(cache)},
     )
     assert result.returncode == 0, result.stderr
     payload = json.loads(out.read_text())
+    assert payload["inductor_cache"] == {"folder": str(cache), "files": 0}
     assert [seed["seed"] for seed in payload["seeds"]] == [0, 1]
     # a goal fraction of at least 0 is reached at the first evaluation, after one iteration
     frames = 4 * 8

@@ -22,10 +22,15 @@ def test_the_recipe_row_has_the_overridden_batch_shape_and_its_split(monkeypatch
     ]
     argv = ["train_throughput.py", "--recipe", "--device", "cpu", "--warmup", "1", "--iters", "2"]
     monkeypatch.setattr(sys, "argv", [*argv, "--out", str(out), "--overrides", *overrides])
+    cache = tmp_path / "inductor"
+    (cache / "fxgraph").mkdir(parents=True)
+    (cache / "fxgraph" / "entry").write_bytes(b"graph")
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(cache))
     torch.set_num_threads(1)
     train_throughput.main()
     payload = json.loads(out.read_text())
     assert payload["overrides"] == overrides
+    assert payload["inductor_cache"] == {"folder": str(cache), "files": 1}
     (row,) = payload["rows"]
     assert (row["num_envs"], row["steps_per_iteration"], row["epochs"]) == (8, 4, 2)
     # on the CPU neither TF32 nor CUDA graphs apply, whatever the recipe sets
