@@ -17,7 +17,9 @@ Per seed, from the run's logs:
 - ``env_steps_per_s``: env-steps over training seconds, end to end; and the medians over the
   iterations of the collection, value-estimation and epoch seconds (``collection_seconds``,
   ``estimation_seconds``, ``epochs_seconds``), which with ``iteration_seconds`` give the split;
-- ``final_goal_fraction``: the last evaluation's; ``curve``: every evaluation's env-steps,
+- ``final_goal_fraction``: the last evaluation's, and ``final_evaluation`` its success rate,
+  spheres out of bounds per episode, episode length in decisions and reward per decision;
+  ``curve``: every evaluation's env-steps,
   training seconds and goal fraction; ``launch_seconds``: the process's wall clock;
 - with a curriculum, ``start_scene_goal_fraction``: the last score of its first stage's scene
   at the target (``curriculum.retention_every``), null if none came.
@@ -70,6 +72,13 @@ from common import (
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ROOT / "recipes" / "mapoca_pretrain.py"
 GOAL = "eval_goal_fraction"
+FINAL = (
+    "success_rate",
+    "out_of_bounds_per_episode",
+    "mean_episode_length",
+    "mean_reward_per_decision",
+)
+"""The last evaluation's metrics that a seed's entry keeps beside its goal fraction."""
 
 
 def recipe_command(seed: int, args: argparse.Namespace, run_dir: Path) -> list[str]:
@@ -127,6 +136,11 @@ def summarize(seed: int, scalars: Path, thresholds: list[float], launch_seconds:
             [int(at), round(training_seconds(at), 1), round(goal, 4)] for at, goal, _ in in_loop
         ],
         "final_goal_fraction": goal_fractions[-1],
+        "final_evaluation": {
+            name: series[-1]
+            for name in FINAL
+            if (series := read_series(scalars, f"eval_{name}")[1])
+        },
         "evaluations": len(evaluations),
         "evaluation_seconds": sum(eval_seconds),
         "env_steps": int(last),
@@ -294,10 +308,17 @@ def table_cells(entry: dict, thresholds: list[float]) -> list[str]:
         f"{entry['collection_seconds']:.2f} / {entry['estimation_seconds']:.2f} / "
         f"{entry['epochs_seconds']:.2f}"
     )
+    last = entry["final_evaluation"]
+    final = f"{entry['final_goal_fraction']:.3f}"
+    if "mean_episode_length" in last:
+        final += (
+            f", {last['out_of_bounds_per_episode']:.2f} lost, "
+            f"{last['mean_episode_length']:.0f} decisions"
+        )
     return [
         entry["seed"],
         *goals,
-        f"{entry['final_goal_fraction']:.3f}",
+        final,
         f"{entry['env_steps_per_s']:,.0f}",
         split,
         f"{entry['evaluation_seconds']:.0f}",
@@ -352,7 +373,14 @@ def main() -> None:
     cache = inductor_cache()
     print(f"Inductor's cache at the start: {cache['folder']}, {cache['files']:,} files")
     goals = [f"to {t:g}: s, env-steps" for t in args.thresholds]
-    columns = ["seed", *goals, "final", "env-steps/s", "collect / estimate / epochs s", "eval s"]
+    columns = [
+        "seed",
+        *goals,
+        "final: goal fraction, lost, decisions",
+        "env-steps/s",
+        "collect / estimate / epochs s",
+        "eval s",
+    ]
     print(table_header(columns))
     # Ctrl-C, also to a benchmark started in the background (which begins with SIGINT
     # ignored), and a scheduler's SIGTERM stop the seeds as Ctrl-C does (run_seeds)

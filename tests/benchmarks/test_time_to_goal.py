@@ -15,7 +15,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
 
-from time_to_goal import recipe_command, summarize  # noqa: E402
+from time_to_goal import FINAL, recipe_command, summarize  # noqa: E402
 
 SCRIPT = Path(__file__).parents[2] / "benchmarks" / "time_to_goal.py"
 
@@ -32,6 +32,8 @@ def write_run(folder: Path) -> list[int]:
     write_series(folder, "run_seconds", list(zip(steps, clock, strict=True)))
     write_series(folder, "eval_goal_fraction", [(200, 0.92), (400, 0.96)])
     write_series(folder, "eval_seconds", [(200, 5.0), (400, 5.0)])
+    write_series(folder, "eval_out_of_bounds_per_episode", [(200, 0.5), (400, 0.25)])
+    write_series(folder, "eval_mean_episode_length", [(200, 300.0), (400, 120.0)])
     write_series(folder, "env_steps_per_s", [(step, 10.0) for step in steps])
     write_series(folder, "collection_steps_per_s", [(step, 50.0) for step in steps])
     write_series(folder, "update_seconds", [(step, 8.0) for step in steps])
@@ -48,6 +50,11 @@ def test_seconds_to_goal_leave_out_the_evaluations_before(tmp_path):
     assert entry["evaluation_seconds"] == 10.0 and entry["evaluations"] == 2
     assert entry["training_seconds"] == 40.0 and entry["env_steps_per_s"] == 10.0
     assert entry["final_goal_fraction"] == 0.96
+    # the metrics logged at the last evaluation, none of those not logged
+    assert entry["final_evaluation"] == {
+        "out_of_bounds_per_episode": 0.25,
+        "mean_episode_length": 120.0,
+    }
     assert entry["curve"] == [[200, 20.0, 0.92], [400, 40.0, 0.96]]
     assert (entry["iteration_seconds"], entry["collection_seconds"]) == (10.0, 2.0)
     assert (entry["estimation_seconds"], entry["epochs_seconds"]) == (1.0, 7.0)
@@ -83,6 +90,9 @@ def test_the_smoke_setting_runs_two_seeds_on_the_cpu(tmp_path):
     assert all(seed["to_goal"]["0"]["env_steps"] == frames for seed in payload["seeds"])
     assert payload["median_seconds_to_goal"] > 0 and payload["seeds_at_goal"] == 2
     assert payload["env_steps_per_s"] > 0 and "mapoca_pretrain.py" in payload["recipe_command"]
+    # every seed keeps its last evaluation's metrics, and its row prints them
+    assert all(set(seed["final_evaluation"]) == set(FINAL) for seed in payload["seeds"])
+    assert " lost, " in result.stdout and " decisions |" in result.stdout
 
 
 def run_one_seed(tmp_path: Path, *options: str) -> tuple[dict, Path]:
