@@ -73,10 +73,17 @@ def test_every_group_option_composes_into_its_dataclass(group, option):
 def test_the_groups_default_to_their_settings_classes_defaults():
     settings = RecipeConfig.of(compose_config("mapoca_pretrain", "model=table1"))
     # train=default is TrainConfig's, with compiled networks (off in the settings class, which
-    # also serves CPU-sized and library use) and 8,192 environments of 8 decisions (the class
-    # keeps 2,048 of 32, on which train=table1 and train=throughput build)
+    # also serves CPU-sized and library use), 8,192 environments of 8 decisions and twice the
+    # learning rates over 300-iteration schedules (the class keeps 2,048 of 32 at 1e-3 over
+    # 1,000, on which train=table1 and train=throughput build)
     assert settings.train == dataclasses.replace(
-        TrainConfig(), compile=True, num_envs=8192, steps_per_iteration=8
+        TrainConfig(),
+        compile=True,
+        num_envs=8192,
+        steps_per_iteration=8,
+        lr_trunk_policy=2e-3,
+        lr_value_baseline=1.2e-3,
+        schedule_iterations=300,
     )
     assert settings.model == TerraShiftModelConfig()
     assert settings.run == RunConfig()
@@ -138,7 +145,11 @@ def test_the_finetune_recipe_differs_from_pretraining_in_its_scene_warm_up_and_k
     assert config.critic_warmup_iterations * config.num_envs * config.steps_per_iteration >= 5e5
     assert config.lr_schedule == "adaptive" and config.desired_kl < TrainConfig().desired_kl
     assert not config.compile  # runs of minutes: no first compilation
+    # the rates and schedules it was measured with, not the pretraining recipe's
+    assert (config.lr_trunk_policy, config.lr_value_baseline) == (1e-3, 6e-4)
+    assert config.schedule_iterations == TrainConfig().schedule_iterations
     changed = {"compile", "critic_warmup_iterations", "lr_schedule", "desired_kl"}
+    changed |= {"lr_trunk_policy", "lr_value_baseline", "schedule_iterations"}
     expected = dataclasses.replace(
         pretrain_settings.train, **{name: getattr(config, name) for name in changed}
     )
