@@ -19,8 +19,8 @@ Per seed, from the run's logs:
   ``estimation_seconds``, ``epochs_seconds``), which with ``iteration_seconds`` give the split;
 - ``final_goal_fraction``: the last evaluation's, and ``final_evaluation`` its success rate,
   spheres out of bounds per episode, episode length in decisions and reward per decision;
-  ``curve``: every evaluation's env-steps,
-  training seconds and goal fraction; ``launch_seconds``: the process's wall clock;
+  ``curve``: every evaluation's env-steps, training seconds and goal fraction;
+  ``launch_seconds``: the process's wall clock;
 - with a curriculum, ``start_scene_goal_fraction``: the last score of its first stage's scene
   at the target (``curriculum.retention_every``), null if none came.
 
@@ -309,12 +309,10 @@ def table_cells(entry: dict, thresholds: list[float]) -> list[str]:
         f"{entry['epochs_seconds']:.2f}"
     )
     last = entry["final_evaluation"]
-    final = f"{entry['final_goal_fraction']:.3f}"
-    if "mean_episode_length" in last:
-        final += (
-            f", {last['out_of_bounds_per_episode']:.2f} lost, "
-            f"{last['mean_episode_length']:.0f} decisions"
-        )
+    final = (
+        f"{entry['final_goal_fraction']:.3f}, {last['out_of_bounds_per_episode']:.2f} lost, "
+        f"{last['mean_episode_length']:.0f} decisions"
+    )
     return [
         entry["seed"],
         *goals,
