@@ -66,9 +66,6 @@ def test_the_pixels_recipe_is_taught_by_the_heuristic():
         untaught = compose(config_name="mapoca_pixels", overrides=["loss=default"])
     assert taught.loss.teacher_coeff == 10.0 and taught.loss.teacher_coeff_end == 1.0
     assert untaught.loss.teacher_coeff == 0.0
-    # the rates and schedules it was measured with, not the pretraining recipe's
-    assert (taught.train.lr_trunk_policy, taught.train.lr_value_baseline) == (1e-3, 6e-4)
-    assert taught.train.schedule_iterations == 1000
 
 
 @pytest.mark.slow

@@ -145,11 +145,7 @@ def test_the_finetune_recipe_differs_from_pretraining_in_its_scene_warm_up_and_k
     assert config.critic_warmup_iterations * config.num_envs * config.steps_per_iteration >= 5e5
     assert config.lr_schedule == "adaptive" and config.desired_kl < TrainConfig().desired_kl
     assert not config.compile  # runs of minutes: no first compilation
-    # the rates and schedules it was measured with, not the pretraining recipe's
-    assert (config.lr_trunk_policy, config.lr_value_baseline) == (1e-3, 6e-4)
-    assert config.schedule_iterations == TrainConfig().schedule_iterations
     changed = {"compile", "critic_warmup_iterations", "lr_schedule", "desired_kl"}
-    changed |= {"lr_trunk_policy", "lr_value_baseline", "schedule_iterations"}
     expected = dataclasses.replace(
         pretrain_settings.train, **{name: getattr(config, name) for name in changed}
     )
