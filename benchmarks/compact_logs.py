@@ -11,7 +11,11 @@ own (``<run dir>/logs/<run name>/scalars``), the evaluation files beside the fol
 logged every iteration as means over bins of consecutive iterations (at most ``--points``
 bins, each at its last iteration's env-steps; the last ``--tail`` iterations are kept one by
 one, so the end-of-run means of ``summarize_training.py`` are exact), the others (periodic
-evaluations) point by point. Values keep 4 significant digits.
+evaluations) point by point. Values keep 4 significant digits. ``--metrics`` keeps only the
+named per-iteration curves (the periodic ones are always kept), for summaries of long runs:
+
+    python benchmarks/compact_logs.py <scalars> --name <run> --metrics reward_per_decision \
+        success_rate env_steps_per_s entropy curriculum_stage run_seconds
 """
 
 from __future__ import annotations
@@ -40,7 +44,15 @@ def bin_steps(steps: list[float], size: int, tail: int) -> list[float]:
     return [steps[min(i + size, head) - 1] for i in range(0, head, size)] + steps[head:]
 
 
-def summarize(folder: Path, *, name: str, points: int, tail: int, **meta: str | None) -> dict:
+def summarize(
+    folder: Path,
+    *,
+    name: str,
+    points: int,
+    tail: int,
+    metrics: list[str] | None = None,
+    **meta: str | None,
+) -> dict:
     steps, _ = read_series(folder, "reward_per_decision")
     if not steps:
         raise SystemExit(f"{folder} has no reward_per_decision.csv: not a CSVLogger scalars folder")
@@ -63,7 +75,8 @@ def summarize(folder: Path, *, name: str, points: int, tail: int, **meta: str | 
     for path in sorted(folder.glob("*.csv")):
         metric_steps, values = read_series(folder, path.stem)
         if metric_steps == steps:
-            summary["series"][path.stem] = significant(bin_means(values, size, tail), 4)
+            if metrics is None or path.stem in metrics:
+                summary["series"][path.stem] = significant(bin_means(values, size, tail), 4)
         else:
             points = [[int(s), v] for s, v in zip(metric_steps, values, strict=True)]
             summary["sparse"][path.stem] = significant(points, 4)
@@ -87,6 +100,9 @@ def main() -> None:
     parser.add_argument("--points", type=int, default=48, help="bins per curve at most")
     parser.add_argument("--tail", type=int, default=16, help="last iterations kept one by one")
     parser.add_argument(
+        "--metrics", nargs="+", help="per-iteration curves to keep (default: all of them)"
+    )
+    parser.add_argument(
         "--out-dir", type=Path, default=Path(__file__).parent / "results" / "training"
     )
     args = parser.parse_args()
@@ -99,6 +115,7 @@ def main() -> None:
             name=name,
             points=args.points,
             tail=args.tail,
+            metrics=args.metrics,
             device=args.device,
             date=args.date,
         )

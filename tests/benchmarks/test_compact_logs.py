@@ -55,6 +55,13 @@ def test_summary_keeps_the_tail_exact_and_bins_the_rest(scalars, tmp_path):
     assert run_label(path) == "run_a"
 
 
+def test_metrics_keep_the_named_curves_and_every_evaluation(scalars):
+    summary = summarize(scalars, name="run_a", points=10, tail=16, metrics=["success_rate"])
+    assert list(summary["series"]) == ["success_rate"]
+    assert list(summary["sparse"]) == ["eval_goal_fraction"]
+    assert len(summary["steps"]) == len(summary["series"]["success_rate"]) == 10 + 16
+
+
 def test_a_folder_without_the_reward_is_refused(tmp_path):
     with pytest.raises(SystemExit, match="no reward_per_decision"):
         summarize(tmp_path, name="x", points=10, tail=16)
