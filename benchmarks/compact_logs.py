@@ -11,21 +11,34 @@ own (``<run dir>/logs/<run name>/scalars``), the evaluation files beside the fol
 logged every iteration as means over bins of consecutive iterations (at most ``--points``
 bins, each at its last iteration's env-steps; the last ``--tail`` iterations are kept one by
 one, so the end-of-run means of ``summarize_training.py`` are exact), the others (periodic
-evaluations) point by point. Values keep 4 significant digits. ``--metrics`` keeps only the
-named per-iteration curves (the periodic ones are always kept), for summaries of long runs:
-
-    python benchmarks/compact_logs.py <scalars> --name <run> --metrics reward_per_decision \
-        success_rate env_steps_per_s entropy curriculum_stage run_seconds
+evaluations) point by point. Values keep 4 significant digits. Of the per-iteration curves
+only those the docs and the scripts draw on are kept (``DRAWN_METRICS``; the periodic ones
+all): ``--metrics`` names others, ``--metrics all`` keeps every one.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from pathlib import Path
 
 from common import benchmark_parser, read_evaluations, read_series, run_label, significant
 from omegaconf import OmegaConf
+
+DRAWN_METRICS = (
+    "reward_per_decision",
+    "success_rate",
+    "env_steps_per_s",
+    "goals_per_episode",
+    "out_of_bounds_per_episode",
+    "entropy",
+    "kl_approx",
+    "lr_trunk_policy",
+    "concentration_amplitude",
+    "curriculum_stage",
+    "run_seconds",
+)
 
 
 def bin_means(values: list[float], size: int, tail: int) -> list[float]:
@@ -50,7 +63,7 @@ def summarize(
     name: str,
     points: int,
     tail: int,
-    metrics: list[str] | None = None,
+    metrics: Sequence[str] | None = DRAWN_METRICS,
     **meta: str | None,
 ) -> dict:
     steps, _ = read_series(folder, "reward_per_decision")
@@ -100,7 +113,10 @@ def main() -> None:
     parser.add_argument("--points", type=int, default=48, help="bins per curve at most")
     parser.add_argument("--tail", type=int, default=16, help="last iterations kept one by one")
     parser.add_argument(
-        "--metrics", nargs="+", help="per-iteration curves to keep (default: all of them)"
+        "--metrics",
+        nargs="+",
+        default=list(DRAWN_METRICS),
+        help="per-iteration curves to keep ('all': every one; default: DRAWN_METRICS)",
     )
     parser.add_argument(
         "--out-dir", type=Path, default=Path(__file__).parent / "results" / "training"
@@ -115,7 +131,7 @@ def main() -> None:
             name=name,
             points=args.points,
             tail=args.tail,
-            metrics=args.metrics,
+            metrics=None if args.metrics == ["all"] else args.metrics,
             device=args.device,
             date=args.date,
         )

@@ -15,7 +15,7 @@ from compact_logs import summarize  # noqa: E402
 
 @pytest.fixture
 def scalars(tmp_path: Path) -> Path:
-    """A CSVLogger folder of 100 iterations: two per-iteration metrics, one periodic one (every
+    """A CSVLogger folder of 100 iterations: three per-iteration metrics, one periodic one (every
     25th iteration), a NaN success rate, and an evaluation file beside it."""
     folder = tmp_path / "run_a"
     folder.mkdir()
@@ -23,6 +23,7 @@ def scalars(tmp_path: Path) -> Path:
     rows = {
         "reward_per_decision": [0.01 * i for i in range(100)],
         "success_rate": [math.nan if i == 3 else 0.5 for i in range(100)],
+        "loss_total": [1.0] * 100,
     }
     for metric, values in rows.items():
         (folder / f"{metric}.csv").write_text(
@@ -55,11 +56,15 @@ def test_summary_keeps_the_tail_exact_and_bins_the_rest(scalars, tmp_path):
     assert run_label(path) == "run_a"
 
 
-def test_metrics_keep_the_named_curves_and_every_evaluation(scalars):
-    summary = summarize(scalars, name="run_a", points=10, tail=16, metrics=["success_rate"])
-    assert list(summary["series"]) == ["success_rate"]
-    assert list(summary["sparse"]) == ["eval_goal_fraction"]
-    assert len(summary["steps"]) == len(summary["series"]["success_rate"]) == 10 + 16
+def test_the_curves_kept_are_those_drawn_or_named_and_every_evaluation(scalars):
+    def kept(**metrics):
+        summary = summarize(scalars, name="run_a", points=10, tail=16, **metrics)
+        assert list(summary["sparse"]) == ["eval_goal_fraction"]
+        return sorted(summary["series"])
+
+    assert kept() == ["reward_per_decision", "success_rate"]  # loss_total is not drawn
+    assert kept(metrics=None) == ["loss_total", "reward_per_decision", "success_rate"]
+    assert kept(metrics=["loss_total"]) == ["loss_total"]
 
 
 def test_a_folder_without_the_reward_is_refused(tmp_path):
