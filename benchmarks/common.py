@@ -165,8 +165,13 @@ def joined_series(run: str | Path, metric: str) -> tuple[list[float], list[float
 
 
 def run_parts(run: str | Path) -> list[Path]:
-    """The parts of a run named ``a+b+...`` (one part for a plain path)."""
-    return [Path(part) for part in str(run).split("+")]
+    """The parts of a run named ``a+b+...`` (one part for a plain path), each an existing
+    summary or scalars folder: a mistyped name is refused, not drawn as a run without data."""
+    parts = [Path(part) for part in str(run).split("+")]
+    for part in parts:
+        if not part.exists():
+            raise FileNotFoundError(f"run {run}: {part} is neither a summary nor a scalars folder")
+    return parts
 
 
 def read_summary(path: Path) -> dict:

@@ -31,6 +31,8 @@ def test_a_runs_parts_joined_by_plus_make_one_series_in_order(tmp_path):
     steps, values = joined_series(f"{first}+{second}", "reward_per_decision")
     assert steps == [64, 128, 192] and values == [0.1, 0.2, 0.3]
     assert joined_series(str(second), "reward_per_decision") == ([192], [0.3])
+    with pytest.raises(FileNotFoundError, match="part2 is neither a summary nor a scalars"):
+        joined_series(f"{first}+{tmp_path / 'part2'}", "reward_per_decision")
 
 
 def test_results_keep_six_significant_digits_and_whole_numbers_exactly(tmp_path):
