@@ -212,12 +212,15 @@ def run_label(run: Path) -> str:
     """A run's name in tables and legends. A summary carries its own; a recipe's own log
     folder, ``<run dir>/logs/<run name>/scalars``, is named by its run directory and the
     command line's overrides that Hydra recorded there (so the runs of a ``-m`` sweep tell
-    apart); any other folder by its own name."""
+    apart); another ``scalars`` folder by its parent's name, any other folder by its own."""
     if run.suffix == ".json":
         return read_summary(run)["run"]
     if run.name != "scalars":
         return run.name
-    run_dir = run.resolve().parents[2]
+    folder = run.resolve()
+    if folder.parent.parent.name != "logs":
+        return folder.parent.name or run.name
+    run_dir = folder.parents[2]
     overrides = run_dir / ".hydra" / "overrides.yaml"
     if not overrides.is_file():
         return run_dir.name

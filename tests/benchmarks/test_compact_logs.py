@@ -70,3 +70,15 @@ def test_the_curves_kept_are_those_drawn_or_named_and_every_evaluation(scalars):
 def test_a_folder_without_the_reward_is_refused(tmp_path):
     with pytest.raises(SystemExit, match="no reward_per_decision"):
         summarize(tmp_path, name="x", points=10, tail=16)
+
+
+def test_a_recipes_folder_is_labelled_by_its_run_and_overrides_any_other_by_its_name(tmp_path):
+    own = tmp_path / "seed_7" / "logs" / "mapoca_pretrain" / "scalars"
+    own.mkdir(parents=True)
+    (tmp_path / "seed_7" / ".hydra").mkdir()
+    (tmp_path / "seed_7" / ".hydra" / "overrides.yaml").write_text("- run.seed=7\n- env=large\n")
+    assert run_label(own) == "seed_7 run.seed=7 env=large"
+    copied = tmp_path / "copied" / "scalars"
+    copied.mkdir(parents=True)
+    assert run_label(copied) == "copied"
+    assert run_label(Path("/scalars")) == "scalars"  # no run directory above it
