@@ -12,7 +12,7 @@ from torch import Tensor, nn
 from terrashift_rl.modules.config import TerraShiftModelConfig
 from terrashift_rl.modules.layers import UpdateDropout
 
-__all__ = ["BetaPolicyHead", "GaussianPolicyHead"]
+__all__ = ["BetaPolicyHead", "GaussianPolicyHead", "initial_concentrations"]
 
 
 class BetaPolicyHead(nn.Module):
@@ -40,13 +40,8 @@ class BetaPolicyHead(nn.Module):
         self.alpha_head = _output_layer(config, action_dim)
         self.beta_head = _output_layer(config, action_dim)
         self.min_concentration = config.min_concentration
-        mean = _initial_action_mean(config, action_dim)
-        if mean is not None:
-            # the Beta's mean on [0, 1]; the smaller concentration stays at the centred start's
-            unit = (mean / config.action_range + 1.0) / 2.0
-            centred = config.min_concentration + math.log(2.0)
-            alpha = centred * torch.clamp(unit / (1.0 - unit), min=1.0)
-            beta = centred * torch.clamp((1.0 - unit) / unit, min=1.0)
+        if config.initial_action_mean:
+            alpha, beta = initial_concentrations(config, action_dim)
             with torch.no_grad():
                 self.alpha_head.bias.add_(_inverse_softplus(alpha - config.min_concentration))
                 self.beta_head.bias.add_(_inverse_softplus(beta - config.min_concentration))
@@ -94,6 +89,33 @@ class GaussianPolicyHead(nn.Module):
         """Map agent embeddings [..., d] to (mean, standard deviation), each [..., A]."""
         loc = self.mean_head(self.mlp(embedding)).float()
         return loc, self.log_std.exp().expand_as(loc)
+
+
+def initial_concentrations(config: TerraShiftModelConfig, action_dim: int) -> tuple[Tensor, Tensor]:
+    """The Beta that :class:`BetaPolicyHead` starts from where the rest of its output layers
+    reads zero: (concentration1, concentration0), each [action_dim]. Centred, both are
+    ``min_concentration + log 2`` (softplus of a zero bias); ``config.initial_action_mean``
+    keeps the smaller at that and raises the other to put the mean there.
+
+    Examples:
+        >>> config = TerraShiftModelConfig.small()
+        >>> alpha, beta = initial_concentrations(config, 2)
+        >>> [round(v, 3) for v in alpha.tolist()], bool(torch.equal(alpha, beta))
+        ([1.703, 1.703], True)
+        >>> import dataclasses
+        >>> config = dataclasses.replace(config, initial_action_mean=[0.0, -0.5])
+        >>> alpha, beta = initial_concentrations(config, 2)
+        >>> [round(v, 3) for v in (alpha / (alpha + beta) * 2 - 1).tolist()]  # on [-1, 1]
+        [0.0, -0.5]
+    """
+    centred = config.min_concentration + math.log(2.0)
+    mean = _initial_action_mean(config, action_dim)
+    if mean is None:
+        return torch.full((action_dim,), centred), torch.full((action_dim,), centred)
+    unit = (mean / config.action_range + 1.0) / 2.0  # the Beta's mean on [0, 1]
+    alpha = centred * torch.clamp(unit / (1.0 - unit), min=1.0)
+    beta = centred * torch.clamp((1.0 - unit) / unit, min=1.0)
+    return alpha, beta
 
 
 def _policy_mlp(config: TerraShiftModelConfig) -> nn.Sequential:
