@@ -4,12 +4,14 @@ Each ``--means`` entry is a ``model.initial_action_mean`` (six values: v_x, v_y,
 amplitude, sigma_x, sigma_y; ``centred`` for the default, an empty one). Actions are drawn from
 the Beta that the policy head starts from where the rest of its output layers reads zero
 (:func:`~terrashift_rl.modules.policy.initial_concentrations`), independently per decision,
-environment and agent, on the pretraining scene with the main job's shape actions; one
-evaluation-mode episode (no respawn) per environment. What such actions reach is what the
+environment and agent, on the pretraining scene with the main job's shape actions (the
+wavelets, or ``--actuator`` on ``--column-shape``); one evaluation-mode episode (no respawn) per
+environment. What such actions reach is what the
 first iterations of training collect: with no sphere moving, no goal and no loss rewards them.
 Prints a table and writes JSON.
 
     python benchmarks/initial_exploration.py --num-envs 256 --means centred 0,0,0,-0.5,0,0
+    python benchmarks/initial_exploration.py --actuator surface_flow --column-shape box
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from tensordict import TensorDictBase
 from terrashift_rl.envs import TerraShiftEnv
 from terrashift_rl.modules.config import TerraShiftModelConfig
 from terrashift_rl.modules.policy import initial_concentrations
-from terrashift_rl.sim import TerraShiftConfig
+from terrashift_rl.sim import ACTUATORS, COLUMN_SHAPES, TerraShiftConfig
 from terrashift_rl.training.evaluation import evaluate, evaluation_scene
 
 
@@ -54,16 +56,26 @@ def main() -> None:
     parser.add_argument("--num-envs", type=int, default=256, help="episodes per mean")
     parser.add_argument("--seed", type=int, default=1, help="the scenes' and the actions' seed")
     parser.add_argument("--means", type=parse_mean, nargs="+", default=[[]])
-    parser.add_argument("--out", type=Path, default=None, help="JSON path (default by device)")
+    parser.add_argument("--actuator", default="wavelets", choices=ACTUATORS)
+    parser.add_argument("--column-shape", default="ellipsoid", choices=COLUMN_SHAPES)
+    parser.add_argument(
+        "--out", type=Path, default=None, help="JSON path (default by family, columns, device)"
+    )
     args = parser.parse_args()
 
     device = torch.device(args.device)
-    out = args.out or Path(__file__).parent / "results" / f"initial_exploration_{device.type}.json"
-    scene = evaluation_scene(TerraShiftConfig.preset("pretrain", action_mode="shape"))
+    name = f"initial_exploration_{args.actuator}_{args.column_shape}_{device.type}.json"
+    out = args.out or Path(__file__).parent / "results" / name
+    scene = evaluation_scene(
+        TerraShiftConfig.preset(
+            "pretrain", action_mode="shape", actuator=args.actuator, column_shape=args.column_shape
+        )
+    )
     payload = {
         "benchmark": "initial_exploration",
         **run_header(device),
-        "scene": "pretrain, shape actions, evaluation mode (respawn off)",
+        "scene": f"pretrain, {args.actuator} on {args.column_shape} columns, shape actions, "
+        "evaluation mode (respawn off)",
         "episodes": args.num_envs,
         "seed": args.seed,
         "rows": [],

@@ -30,16 +30,18 @@ def test_the_sampled_actions_have_the_initial_mean_inside_the_range():
     )
 
 
-def test_the_script_scores_each_mean_and_refuses_a_bad_one_before_playing(tmp_path):
+def test_the_script_scores_each_mean_on_the_family_and_refuses_a_bad_mean_before_playing(tmp_path):
     out = tmp_path / "exploration.json"
     command = [sys.executable, str(BENCHMARKS / "initial_exploration.py"), "--device", "cpu"]
+    family = ["--actuator", "rotors", "--column-shape", "box", "--num-envs", "2"]
+    means = ["--means", "centred", "0,0,0,-0.5,0,0"]
     done = subprocess.run(
-        [*command, "--num-envs", "2", "--means", "centred", "0,0,0,-0.5,0,0", "--out", str(out)],
-        capture_output=True,
-        text=True,
+        [*command, *family, *means, "--out", str(out)], capture_output=True, text=True
     )
     assert done.returncode == 0, done.stderr
-    rows = json.loads(out.read_text())["rows"]
+    results = json.loads(out.read_text())
+    assert results["scene"].startswith("pretrain, rotors on box columns")
+    rows = results["rows"]
     assert [row["initial_action_mean"] for row in rows] == [[], [0.0, 0.0, 0.0, -0.5, 0.0, 0.0]]
     for row in rows:
         assert 0.0 <= row["goal_fraction"] <= 1.0 and row["episodes"] == 2
