@@ -6,9 +6,9 @@ the Beta that the policy head starts from where the rest of its output layers re
 (:func:`~terrashift_rl.modules.policy.initial_concentrations`), independently per decision,
 environment and agent, on the pretraining scene with the main job's shape actions (the
 wavelets, or ``--actuator`` on ``--column-shape``); one evaluation-mode episode (no respawn) per
-environment. What such actions reach is what the
-first iterations of training collect: with no sphere moving, no goal and no loss rewards them.
-Prints a table and writes JSON.
+environment. Such actions are what the first iterations of training collect: where they move
+no sphere, no goal is reached and none is lost, and the reward tells the policy nothing about
+sorting. Prints a table and writes JSON.
 
     python benchmarks/initial_exploration.py --num-envs 256 --means centred 0,0,0,-0.5,0,0
     python benchmarks/initial_exploration.py --actuator surface_flow --column-shape box
