@@ -72,7 +72,7 @@ def test_a_folder_without_the_reward_is_refused(tmp_path):
         summarize(tmp_path, name="x", points=10, tail=16)
 
 
-def test_a_recipes_folder_is_labelled_by_its_run_and_overrides_any_other_by_its_name(tmp_path):
+def test_a_recipes_folder_is_labelled_by_its_run_and_overrides_another_by_its_parent(tmp_path):
     own = tmp_path / "seed_7" / "logs" / "mapoca_pretrain" / "scalars"
     own.mkdir(parents=True)
     (tmp_path / "seed_7" / ".hydra").mkdir()
