@@ -61,6 +61,13 @@ def processor_seconds(pid: int) -> float:
     return sum(int(field) for field in fields[11:15]) / os.sysconf("SC_CLK_TCK")
 
 
+def _default_sigint() -> None:
+    """In the command's process: Ctrl-C's default action, as a terminal's programs start with,
+    also when this timer runs in the background of a shell, which starts it with SIGINT
+    ignored (a disposition its children would inherit)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def timed_in_terminal(
     command: list[str],
     *,
@@ -94,7 +101,13 @@ def timed_in_terminal(
     children = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.monotonic()
     process = subprocess.Popen(
-        command, cwd=cwd, stdin=terminal, stdout=terminal, stderr=terminal, start_new_session=True
+        command,
+        cwd=cwd,
+        stdin=terminal,
+        stdout=terminal,
+        stderr=terminal,
+        start_new_session=True,
+        preexec_fn=_default_sigint,
     )
     os.close(terminal)
     output, seen, interrupted = "", {}, None

@@ -11,7 +11,7 @@ Per seed, from the run's logs:
 
 - for each threshold (``--thresholds``, 0.95 and 0.90): the training seconds and env-steps at the
   first evaluation whose goal fraction reaches it (null if none did). Training seconds are the
-  recipe's ``run_seconds`` (wall clock since its loop began: collection, updates, checkpoints)
+  recipe's ``run_seconds`` (wall clock in its loop: collection, updates, checkpoints)
   less the seconds of the evaluations before: evaluation is reported, not counted;
 - ``evaluation_seconds``, all evaluations together;
 - ``env_steps_per_s``: env-steps over training seconds, end to end; and the medians over the
@@ -20,9 +20,15 @@ Per seed, from the run's logs:
 - ``final_goal_fraction``: the last evaluation's, and ``final_evaluation`` its success rate,
   spheres out of bounds per episode, episode length in decisions and reward per decision;
   ``curve``: every evaluation's env-steps, training seconds and goal fraction;
-  ``launch_seconds``: the process's wall clock;
+  ``launch_seconds``: the process's wall clock (the last part's);
 - with a curriculum, ``start_scene_goal_fraction``: the last score of its first stage's scene
   at the target (``curriculum.retention_every``), null if none came.
+
+With ``--resume`` every seed's run kept in ``--keep`` by an earlier call goes on from its last
+checkpoint (``run.resume``, the same command otherwise) for ``--minutes`` more, in the same
+folder: a run longer than one machine's hold (a job's time limit, a lent GPU) is measured in
+parts: the recipe's clock goes on from the checkpoint, so the times to goal add up every
+part's training seconds (each part's compilation included, the seconds between parts not).
 
 With ``--stop-at-goal`` a seed's run is stopped, as Ctrl-C stops it (checkpoint written), at its
 first evaluation that reaches every threshold: the times to goal are the same, the GPU is free
@@ -32,7 +38,8 @@ in the entries of the seeds it cut short; seeds not started are left out), then 
 status 130. A seed still running ``--grace`` seconds after its ``--minutes`` is stopped so too
 and kept, marked ``interrupted``.
 
-The JSON holds ``device``, ``date``, ``command``, ``seeds`` (one entry per seed), the medians over
+The JSON holds ``device``, ``date``, ``command``, ``seeds`` (one entry per seed), ``resumed``
+(whether this call went on with kept runs), the medians over
 seeds ``env_steps_per_s`` and ``median_seconds_to_goal`` (to the first threshold; null unless
 more than half the seeds reached it) and ``inductor_cache``, the compile cache's folder and the
 files it held at the start (a compiled update found there loads in seconds, compiling it takes
@@ -42,6 +49,8 @@ about a minute: the seconds to goal differ by that much), and prints a table.
     python benchmarks/time_to_goal.py --seeds 7 --processes 4 --minutes 4   # 4 GPUs, one seed
     python benchmarks/time_to_goal.py --config-name mapoca_pixels --seeds 7 8 9 --minutes 17
     python benchmarks/time_to_goal.py --smoke --seeds 0 1 --thresholds 0  # CPU: a launch check
+    python benchmarks/time_to_goal.py --seeds 8 --minutes 24 --keep runs --overrides env=large \
+        curriculum=auto   # then, on the next machine, the same with --resume: 48 minutes in all
 """
 
 from __future__ import annotations
@@ -93,11 +102,15 @@ def recipe_command(seed: int, args: argparse.Namespace, run_dir: Path) -> list[s
         settings = ["--config-name", "smoke", *settings, "run.total_env_steps=1000000000"]
     elif args.config_name:
         settings = ["--config-name", args.config_name, *settings]
+    if args.resume:
+        settings.append(f"run.resume={run_dir / 'checkpoints' / 'last.pt'}")
     return [*launcher, str(RECIPE), *settings, *args.overrides, f"hydra.run.dir={run_dir}"]
 
 
-def summarize(seed: int, scalars: Path, thresholds: list[float], launch_seconds: float) -> dict:
-    """One seed's entry, from its CSV logs."""
+def summarize(
+    seed: int, scalars: Path, thresholds: list[float], launch_seconds: float, eval_every: int
+) -> dict:
+    """One seed's entry, from its CSV logs (evaluations every ``eval_every`` iterations)."""
     eval_steps, goal_fractions = read_series(scalars, GOAL)
     _, eval_seconds = read_series(scalars, "eval_seconds")
     steps, run_seconds = read_series(scalars, "run_seconds")
@@ -107,12 +120,21 @@ def summarize(seed: int, scalars: Path, thresholds: list[float], launch_seconds:
     _, estimation_seconds = read_series(scalars, "estimation_seconds")
     if not steps or not eval_steps:
         raise SystemExit(f"{scalars} holds no iterations or no evaluations")
-    # an in-loop evaluation runs after its iteration's run_seconds was taken: the seconds of
-    # the evaluations at earlier iterations are what to subtract
+    if any(later <= earlier for earlier, later in zip(steps, steps[1:], strict=False)):
+        raise SystemExit(
+            f"{scalars} logs an iteration's env-steps twice: a part of the run went on past the "
+            "checkpoint that the next part resumed from (killed without writing one), so its "
+            "seconds cannot be added up"
+        )
+    # the evaluations after an iteration: in the loop every eval_every iterations, after its
+    # iteration's run_seconds was taken (the seconds of those at earlier iterations are what
+    # to subtract), and a run's final one, after its loop and off the clock that a resumed
+    # part continues from its checkpoint
     seconds_at = dict(zip(steps, run_seconds, strict=True))
-    evaluations = list(zip(eval_steps, goal_fractions, eval_seconds, strict=False))
-    in_loop = [e for e in evaluations if e[0] in seconds_at]
     frames = steps[0]  # the env-steps of one iteration, every rank's
+    evaluations = list(zip(eval_steps, goal_fractions, eval_seconds, strict=False))
+    scored = [e for e in evaluations if e[0] in seconds_at]
+    in_loop = [e for e in scored if round(e[0] / frames) % eval_every == 0]
 
     def training_seconds(step: float) -> float:
         earlier = sum(seconds for at, _, seconds in in_loop if at < step)
@@ -120,7 +142,7 @@ def summarize(seed: int, scalars: Path, thresholds: list[float], launch_seconds:
 
     to_goal = {}
     for threshold in thresholds:
-        reached = next((e for e in in_loop if e[1] >= threshold), None)
+        reached = next((e for e in scored if e[1] >= threshold), None)
         to_goal[f"{threshold:g}"] = {
             "seconds": None if reached is None else training_seconds(reached[0]),
             "env_steps": None if reached is None else int(reached[0]),
@@ -133,7 +155,7 @@ def summarize(seed: int, scalars: Path, thresholds: list[float], launch_seconds:
         # each evaluation: env-steps, training seconds, goal fraction (to a tenth of a second
         # and four decimals: 128 episodes resolve no finer)
         "curve": [
-            [int(at), round(training_seconds(at), 1), round(goal, 4)] for at, goal, _ in in_loop
+            [int(at), round(training_seconds(at), 1), round(goal, 4)] for at, goal, _ in scored
         ],
         "final_goal_fraction": goal_fractions[-1],
         "final_evaluation": {
@@ -179,7 +201,7 @@ def run_seeds(args: argparse.Namespace, folder: Path) -> tuple[list[dict], bool]
                 if gpus:
                     first = slot * args.processes
                     env["CUDA_VISIBLE_DEVICES"] = ",".join(visible[first : first + args.processes])
-                log = (folder / f"seed_{seed}.log").open("w")
+                log = (folder / f"seed_{seed}.log").open("a" if args.resume else "w")
                 process = subprocess.Popen(
                     recipe_command(seed, args, run_dir),
                     cwd=folder,
@@ -212,38 +234,36 @@ def run_seeds(args: argparse.Namespace, folder: Path) -> tuple[list[dict], bool]
                     )
                 ):
                     raise SystemExit(f"seed {seed} failed (status {process.returncode}):\n{tail}")
-                entry = logged_entry(seed, run_dir, args.thresholds, elapsed, interrupted=overran)
+                entry = logged_entry(seed, run_dir, args, elapsed, interrupted=overran)
                 if entry is not None:
                     done.append(entry)
     except KeyboardInterrupt:
-        done += interrupt(running, stopped, args.thresholds, args.processes)
+        done += interrupt(running, stopped, args)
         return sorted(done, key=lambda entry: entry["seed"]), True
     return sorted(done, key=lambda entry: entry["seed"]), False
 
 
-def interrupt(
-    running: dict, stopped: set[int], thresholds: list[float], processes: int
-) -> list[dict]:
+def interrupt(running: dict, stopped: set[int], args: argparse.Namespace) -> list[dict]:
     """After Ctrl-C: stops every running seed as Ctrl-C stops a run (checkpoint written; killed
     if it has not ended within a minute; those ``stopped`` at their goal already are only
     waited for) and returns the entries of those that logged an evaluation, marked
     ``interrupted``."""
     for seed, (process, *_) in running.items():
         if seed not in stopped:
-            ctrl_c(process, processes)
+            ctrl_c(process, args.processes)
     entries = []
     for seed, (process, _, start, log, run_dir) in running.items():
-        stop(process, processes, signalled=True)
+        stop(process, args.processes, signalled=True)
         log.close()
         elapsed = time.perf_counter() - start
-        entry = logged_entry(seed, run_dir, thresholds, elapsed, interrupted=True)
+        entry = logged_entry(seed, run_dir, args, elapsed, interrupted=True)
         if entry is not None:
             entries.append(entry)
     return entries
 
 
 def logged_entry(
-    seed: int, run_dir: Path, thresholds: list[float], elapsed: float, *, interrupted: bool
+    seed: int, run_dir: Path, args: argparse.Namespace, elapsed: float, *, interrupted: bool
 ) -> dict | None:
     """A seed's entry from what its run logged, printed as a row of the table; None (and a
     message) if it logged no evaluation."""
@@ -251,11 +271,11 @@ def logged_entry(
     if scalars is None or not read_series(scalars, GOAL)[0]:
         print(f"seed {seed}: no evaluation logged", flush=True)
         return None
-    entry = summarize(seed, scalars, thresholds, elapsed)
+    entry = summarize(seed, scalars, args.thresholds, elapsed, args.eval_every)
     if interrupted:
         entry["interrupted"] = True
     note = " (interrupted)" if interrupted else ""
-    print(table_row(table_cells(entry, thresholds)) + note, flush=True)
+    print(table_row(table_cells(entry, args.thresholds)) + note, flush=True)
     return entry
 
 
@@ -347,7 +367,25 @@ def main() -> None:
     )
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--keep", type=Path, default=None, help="keep the runs' folders here")
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="go on with the runs kept in --keep from their last checkpoints",
+    )
     args = parser.parse_args()
+    if args.resume:
+        if args.keep is None:
+            parser.error("--resume goes on with the runs kept in --keep: name that folder")
+        missing = [
+            seed
+            for seed in args.seeds
+            if not (args.keep / f"seed_{seed}" / "checkpoints" / "last.pt").is_file()
+        ]
+        if missing:
+            parser.error(
+                f"--resume: no checkpoints/last.pt in {args.keep}/seed_<seed> for seed(s) "
+                f"{', '.join(map(str, missing))}"
+            )
     if args.minutes <= 0 or args.eval_every < 1 or args.processes < 1:
         parser.error("--minutes must be > 0, --eval-every and --processes >= 1")
     if args.smoke and args.config_name:
@@ -405,6 +443,7 @@ def main() -> None:
         "thresholds": args.thresholds,
         "processes": args.processes,
         "stop_at_goal": args.stop_at_goal,
+        "resumed": args.resume,
         "interrupted": interrupted,
         "seeds": seeds,
         "env_steps_per_s": statistics.median(s["env_steps_per_s"] for s in seeds),

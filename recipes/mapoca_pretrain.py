@@ -181,10 +181,11 @@ def train(
     if pretrained is not None:
         trainer.load_weights(pretrained)
     eval_env = eval_every and evaluation_env(settings.env)  # the target's, with a curriculum
-    run_id, best = None, {"reward": -math.inf, "recent": []}
+    run_id, best, seconds_before = None, {"reward": -math.inf, "recent": []}, 0.0
     if resume is not None:
         trainer.load_state_dict(resume)
         run_id, best = resume["logger_run_id"], resume["best"]
+        seconds_before = resume["run_seconds"]  # the earlier parts' time in the loop
         if main and resume.get("world_size", 1) != distributed.world_size():
             log.info(world_size_change(resume.get("world_size", 1), distributed.world_size()))
     logger = make_logger(settings.logger, run.name, run_dir, run_id) if main else None
@@ -204,8 +205,14 @@ def train(
         )
         return {**scores, "eval_seconds": time.monotonic() - start}
 
+    def run_seconds() -> float:
+        """The seconds spent in the training loop (evaluations and checkpoints included), a
+        resumed run's earlier parts too."""
+        return seconds_before + time.monotonic() - started
+
     def save_last() -> None:
-        state = last_state(trainer, configs, run_id, best)  # on every rank: a collective
+        # on every rank: a collective
+        state = last_state(trainer, configs, run_id, best, run_seconds())
         if main:
             save_checkpoint(state, last)
 
@@ -254,8 +261,7 @@ def train(
                 trainer, total_env_steps=run.total_env_steps, deadline=deadline
             ):
                 stop.activity = "the evaluation and writes after an iteration"
-                # since the loop began, evaluations and checkpoints included, this one's aside
-                metrics["run_seconds"] = time.monotonic() - started
+                metrics["run_seconds"] = run_seconds()  # this iteration's evaluation aside
                 progress.update(trainer.env_steps - progress.n)
                 if stages is not None:
                     stage = curriculum.stage

@@ -106,6 +106,7 @@ ENTRIES = {
     "carry": (TensorDictBase, type(None)),
     "logger_run_id": (str, type(None)),
     "best": (dict,),
+    "run_seconds": (float,),
     "world_size": (int,),
     "rank_states": (list,),
 }
@@ -380,6 +381,7 @@ def upgrade(state: dict[str, Any]) -> dict[str, Any]:
       loss settings move to ``train_config["loss"]``, those renamed since (``value_clip_*``)
       take their names now, and a setting the checkpoint predates takes its default then.
     - ``best``: absent before ``best.pt`` existed, an empty window.
+    - ``run_seconds``: absent before a resumed run's clock went on from its checkpoint, 0.
     - :data:`RETIRED_SETTINGS` are dropped.
 
     Example:
@@ -400,6 +402,7 @@ def upgrade(state: dict[str, Any]) -> dict[str, Any]:
         state["env_config"] = {"action_mode": "delta", **state["env_config"]}
     if "optimizer" in state:
         state.setdefault("best", {"reward": -math.inf, "recent": []})
+        state.setdefault("run_seconds", 0.0)
     for name, retired in RETIRED_SETTINGS.items():
         if name in state:
             state[name] = {key: value for key, value in state[name].items() if key not in retired}
@@ -426,11 +429,23 @@ def weights_state(trainer: OnPolicyTrainer, configs: dict, **extra: Any) -> dict
 
 
 def last_state(
-    trainer: OnPolicyTrainer, configs: dict, run_id: str | None, best: dict[str, Any]
+    trainer: OnPolicyTrainer,
+    configs: dict,
+    run_id: str | None,
+    best: dict[str, Any],
+    run_seconds: float,
 ) -> dict:
-    """What ``last.pt`` holds: the trainer's state, the configs, the logger's run and the best
-    reward's window. In a data-parallel run every rank calls it (a collective)."""
-    return {**trainer.state_dict(), **configs, "logger_run_id": run_id, "best": best}
+    """What ``last.pt`` holds: the trainer's state, the configs, the logger's run, the best
+    reward's window and the seconds the run has spent in its training loop, over every part
+    (a resumed run's clock goes on from them). In a data-parallel run every rank calls it (a
+    collective)."""
+    return {
+        **trainer.state_dict(),
+        **configs,
+        "logger_run_id": run_id,
+        "best": best,
+        "run_seconds": run_seconds,
+    }
 
 
 def update_best(

@@ -1,6 +1,6 @@
-"""time_to_goal.py: a seed's time to a goal fraction from its logs, evaluation time not counted;
-the recipe's command with a config name; the smoke launch end to end, stopped at its goal, by
-Ctrl-C and past its minutes."""
+"""time_to_goal.py: a seed's time to a goal fraction from its logs, evaluation time not counted,
+over every part of a resumed run; the recipe's command with a config name; the smoke launch end
+to end, stopped at its goal, by Ctrl-C and past its minutes, and resumed."""
 
 import argparse
 import json
@@ -43,7 +43,7 @@ def write_run(folder: Path) -> list[int]:
 
 def test_seconds_to_goal_leave_out_the_evaluations_before(tmp_path):
     write_run(tmp_path)
-    entry = summarize(3, tmp_path, [0.95, 0.9, 0.99], launch_seconds=70.0)
+    entry = summarize(3, tmp_path, [0.95, 0.9, 0.99], launch_seconds=70.0, eval_every=2)
     assert entry["to_goal"]["0.9"] == {"seconds": 20.0, "env_steps": 200}
     assert entry["to_goal"]["0.95"] == {"seconds": 40.0, "env_steps": 400}  # 45 less 5
     assert entry["to_goal"]["0.99"] == {"seconds": None, "env_steps": None}
@@ -61,12 +61,44 @@ def test_seconds_to_goal_leave_out_the_evaluations_before(tmp_path):
     assert "start_scene_goal_fraction" not in entry  # no curriculum
 
 
+def test_a_resumed_runs_seconds_leave_out_its_first_parts_final_evaluation(tmp_path):
+    write_run(tmp_path)
+    # the first part ends by its minutes at 500 env-steps (55 s on its clock) and evaluates
+    # once more after its loop (5 s); the second part's clock goes on from its checkpoint's
+    # 56 s, and its first iteration ends at 68 s (the compilation included)
+    with (tmp_path / "run_seconds.csv").open("a") as file:
+        file.write("500,55.0\n600,68.0\n")
+    with (tmp_path / "eval_goal_fraction.csv").open("a") as file:
+        file.write("500,0.965\n600,0.97\n")
+    with (tmp_path / "eval_seconds.csv").open("a") as file:
+        file.write("500,5.0\n600,5.0\n")
+    entry = summarize(3, tmp_path, [0.97, 0.965], launch_seconds=30.0, eval_every=2)
+    # 68 less the in-loop evaluations at 200 and 400: the final one at 500 is off the clock
+    assert entry["to_goal"]["0.97"] == {"seconds": 58.0, "env_steps": 600}
+    assert entry["to_goal"]["0.965"] == {"seconds": 45.0, "env_steps": 500}
+    assert entry["curve"][-2:] == [[500, 45.0, 0.965], [600, 58.0, 0.97]]
+    assert entry["training_seconds"] == 58.0 and entry["env_steps_per_s"] == 600 / 58.0
+
+
+def test_a_run_that_logged_past_the_checkpoint_it_resumed_from_is_refused(tmp_path):
+    write_run(tmp_path)
+    with (tmp_path / "run_seconds.csv").open("a") as file:  # 300 and 400 logged again
+        file.write("300,11.0\n400,21.0\n")
+    with pytest.raises(SystemExit, match="env-steps twice"):
+        summarize(3, tmp_path, [0.95], launch_seconds=30.0, eval_every=2)
+
+
 def test_a_curriculum_runs_entry_keeps_the_last_score_of_its_first_stage(tmp_path):
     steps = write_run(tmp_path)
     write_series(tmp_path, "curriculum_stage", [(step, 1.0 + (step > 200)) for step in steps])
-    assert summarize(3, tmp_path, [0.9], launch_seconds=70.0)["start_scene_goal_fraction"] is None
+
+    def kept() -> float | None:
+        entry = summarize(3, tmp_path, [0.9], launch_seconds=70.0, eval_every=2)
+        return entry["start_scene_goal_fraction"]
+
+    assert kept() is None
     write_series(tmp_path, "curriculum_start_eval_goal_fraction", [(300, 0.97), (400, 0.95)])
-    assert summarize(3, tmp_path, [0.9], launch_seconds=70.0)["start_scene_goal_fraction"] == 0.95
+    assert kept() == 0.95
 
 
 @pytest.mark.slow
@@ -167,9 +199,51 @@ def test_a_seed_past_its_minutes_and_grace_is_stopped_and_kept(tmp_path):
     assert (keep / "seed_0" / "checkpoints" / "last.pt").is_file()  # stopped as Ctrl-C stops it
 
 
+@pytest.mark.slow
+def test_resume_goes_on_with_a_kept_run_and_its_clock(tmp_path):
+    out, keep = tmp_path / "time_to_goal.json", tmp_path / "runs"
+    command = [sys.executable, str(SCRIPT), "--smoke", "--seeds", "0", "--minutes", "0.1"]
+    command += ["--eval-every", "1", "--thresholds", "0.99", "--out", str(out), "--keep", str(keep)]
+
+    def one_part(*options: str) -> dict:
+        result = subprocess.run([*command, *options], capture_output=True, text=True, timeout=600)
+        assert result.returncode == 0, result.stderr
+        (seed,) = json.loads(out.read_text())["seeds"]
+        return seed
+
+    first = one_part()
+    second = one_part("--resume")
+    assert json.loads(out.read_text())["resumed"]
+    assert second["env_steps"] > first["env_steps"]
+    assert second["training_seconds"] > first["training_seconds"]
+    assert second["curve"][: len(first["curve"])] == first["curve"]
+    clock = keep / "seed_0" / "logs" / "smoke" / "scalars" / "run_seconds.csv"
+    seconds = [float(row.split(",")[1]) for row in clock.read_text().split()]
+    assert len(seconds) > len(first["curve"]) and seconds == sorted(seconds)  # one clock
+    log = (keep / "seed_0.log").read_text()  # both parts' output
+    assert log.count("env-steps in") == 2 and "run.resume=" in log
+
+
+def test_resume_needs_the_kept_runs_and_names_a_seed_without_a_checkpoint(tmp_path):
+    command = [sys.executable, str(SCRIPT), "--smoke", "--seeds", "0", "1", "--resume"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2 and "name that folder" in result.stderr
+    (tmp_path / "seed_0" / "checkpoints").mkdir(parents=True)
+    (tmp_path / "seed_0" / "checkpoints" / "last.pt").touch()
+    result = subprocess.run(
+        [*command, "--keep", str(tmp_path)], capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 2 and "for seed(s) 1" in result.stderr
+
+
 def test_a_config_name_reaches_the_recipe_and_not_beside_smoke():
     args = argparse.Namespace(
-        processes=1, minutes=1.0, eval_every=5, smoke=False, config_name="mapoca_pixels"
+        processes=1,
+        minutes=1.0,
+        eval_every=5,
+        smoke=False,
+        config_name="mapoca_pixels",
+        resume=False,
     )
     args.overrides = ["env.camera_resolution=32"]
     command = recipe_command(7, args, Path("run"))

@@ -162,5 +162,6 @@ def test_the_converter_brings_an_earlier_layout_to_the_current_one_and_leaves_th
     assert new["train_config"]["loss"]["clip_value_end"] == 0.2
     assert "teacher_coeff" not in new["train_config"]["loss"]  # MAPPO has none
     assert new["best"] == {"reward": -float("inf"), "recent": []}
+    assert new["run_seconds"] == 0.0  # a resumed run's clock starts where none was kept
     assert upgrade(new) == new
     assert upgrade({"step": 1}) == {"step": 1}  # not a training checkpoint
