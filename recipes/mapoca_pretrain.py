@@ -60,7 +60,6 @@ from terrashift_rl.training.checkpoint import (
     save_checkpoint,
     update_best,
     weights_state,
-    world_size_change,
 )
 from terrashift_rl.training.curriculum import Curriculum, CurriculumHook, make_curriculum_env
 from terrashift_rl.training.evaluation import evaluate_periodically, evaluation_scene, headline
@@ -187,7 +186,9 @@ def train(
         run_id, best = resume["logger_run_id"], resume["best"]
         seconds_before = resume["run_seconds"]  # the earlier parts' time in the loop
         if main and resume.get("world_size", 1) != distributed.world_size():
-            log.info(world_size_change(resume.get("world_size", 1), distributed.world_size()))
+            log.info(
+                distributed.world_size_change(resume.get("world_size", 1), distributed.world_size())
+            )
     logger = make_logger(settings.logger, run.name, run_dir, run_id) if main else None
     run_id = run_id or logger_run_id(logger)
     if main:

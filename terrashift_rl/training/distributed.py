@@ -64,6 +64,7 @@ __all__ = [
     "rank_entries",
     "watch",
     "world_size",
+    "world_size_change",
 ]
 
 BACKENDS = {"cuda": "nccl", "cpu": "gloo"}
@@ -330,3 +331,28 @@ def rank_entries(state: dict[str, Any], keys: Sequence[str]) -> dict[str, Any] |
         return {key: state[key] for key in keys}
     others = state.get("rank_states") or []
     return others[own - 1] if own - 1 < len(others) else None
+
+
+def world_size_change(saved: int, now: int) -> str:
+    """What resuming a checkpoint of ``saved`` processes with ``now`` processes does.
+
+    Example:
+        >>> world_size_change(4, 2).split("over, ")[1]
+        'the environments of ranks 0-1 continue, those of ranks 2-3 are left behind'
+        >>> world_size_change(1, 2).split("over, ")[1]
+        'the environments of rank 0 continue, and new ones from run.seed + rank for rank 1'
+    """
+
+    def ranks(first: int, last: int) -> str:
+        return f"rank {first}" if first == last else f"ranks {first}-{last}"
+
+    change = (
+        f"and new ones from run.seed + rank for {ranks(saved, now - 1)}"
+        if now > saved
+        else f"those of {ranks(now, saved - 1)} are left behind"
+    )
+    return (
+        f"the checkpoint was trained by {saved} process(es) and continues with {now}: the "
+        "weights, optimiser, return statistics and counters carry over, the environments of "
+        f"{ranks(0, min(saved, now) - 1)} continue, {change}"
+    )
