@@ -2,7 +2,8 @@
 
 A checkpoint holds the weights, configs and counters that evaluation and finetuning read
 (:data:`WEIGHTS_KEYS`, :func:`weights_state`); ``last.pt`` also the trainer's whole state, the
-logger's run and the best reward's window (:data:`RESUME_KEYS`, :func:`last_state`).
+logger's run, the best reward's window and the seconds spent in the training loop
+(:data:`RESUME_KEYS`, :func:`last_state`).
 :func:`check_resumable` says whether a run's settings continue a checkpoint, and
 :func:`check_action_mode` whether a policy's actions mean the same in a scene. Every loaded
 checkpoint passes :func:`upgrade`, the one converter of checkpoints written before the current
