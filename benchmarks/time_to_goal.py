@@ -26,8 +26,8 @@ Per seed, from the run's logs:
 
 With ``--resume`` every seed's run kept in ``--keep`` by an earlier call goes on from its last
 checkpoint (``run.resume``, the same command otherwise) for ``--minutes`` more, in the same
-folder: a run longer than one machine's hold (a job's time limit, a lent GPU) is measured in
-parts: the recipe's clock goes on from the checkpoint, so the times to goal add up every
+folder. A run longer than one machine's hold (a job's time limit, a lent GPU) is so measured
+in parts; the recipe's clock goes on from the checkpoint, so the times to goal add up every
 part's training seconds (each part's compilation included, the seconds between parts not).
 
 With ``--stop-at-goal`` a seed's run is stopped, as Ctrl-C stops it (checkpoint written), at its
