@@ -30,6 +30,7 @@ from torchrl.modules import set_recurrent_mode
 
 from terrashift_rl.modules import TerraShiftModelConfig, keys, make_terrashift_networks
 from terrashift_rl.modules.networks import TerraShiftNetworks
+from terrashift_rl.training.launch import close_compile_workers
 
 DEFAULT_BATCHES = [1024, 2048, 4096, 8192, 16384]
 PRECISIONS = {"fp32": None, "bf16": torch.bfloat16}
@@ -283,4 +284,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    finally:
+        close_compile_workers()  # not the minutes Inductor may wait for them at exit

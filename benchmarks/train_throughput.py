@@ -57,6 +57,7 @@ from torch.autograd import DeviceType
 from terrashift_rl.modules import TerraShiftModelConfig, make_terrashift_networks
 from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training import OnPolicyTrainer, TrainConfig, make_trainer, make_training_env
+from terrashift_rl.training.launch import close_compile_workers
 from terrashift_rl.training.settings import RecipeConfig, register_config_schemas
 
 CONFIGS = Path(__file__).resolve().parents[1] / "recipes" / "configs"
@@ -485,4 +486,7 @@ def profile_recipe_update(args: argparse.Namespace, device: torch.device, name: 
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    finally:
+        close_compile_workers()  # not the minutes Inductor may wait for them at exit

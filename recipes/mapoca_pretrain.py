@@ -66,6 +66,7 @@ from terrashift_rl.training.evaluation import evaluate_periodically, evaluation_
 from terrashift_rl.training.launch import (
     check_warp_cache,
     claim_run_folder,
+    close_compile_workers,
     hydra_overrides_of_other_ranks,
     refusals_end_the_run,
     register_run_folder,
@@ -365,7 +366,10 @@ def launch(cfg: DictConfig) -> Path:
     )
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     with claim_run_folder(run_dir):
-        return train(cfg, run_dir=run_dir, resume_hint=resume_command)
+        try:
+            return train(cfg, run_dir=run_dir, resume_hint=resume_command)
+        finally:
+            close_compile_workers()
 
 
 @hydra.main(version_base=None, config_path="configs", config_name="mapoca_pretrain")

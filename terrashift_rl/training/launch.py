@@ -1,7 +1,8 @@
 """How a recipe meets its command line and its machine: the device setting, Warp's start on it,
 the CPU-sized defaults of a run without CUDA, the run's folder (its lock and writability) and the
 command that resumes it, the command line of a ``torchrun`` rank other than 0, Warp's kernel
-cache, and refusals that end a run with their message alone."""
+cache, Inductor's compile workers at the end, and refusals that end a run with their message
+alone."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import os
 import shlex
 import sys
 import tempfile
+import threading
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -34,6 +36,7 @@ __all__ = [
     "check_warp_cache",
     "check_writable",
     "claim_run_folder",
+    "close_compile_workers",
     "cpu_overrides",
     "hydra_overrides_of_other_ranks",
     "register_run_folder",
@@ -45,6 +48,9 @@ __all__ = [
     "size_for_the_machine",
     "start_warp",
 ]
+
+COMPILE_WORKERS_TIMEOUT = 30.0
+"""Seconds that :func:`close_compile_workers` gives Inductor's compile workers to exit."""
 
 LOCK_NAME = "run.lock"
 """The file in a run folder that holds the process id of the run writing there."""
@@ -318,6 +324,36 @@ def check_warp_cache() -> None:
             check_writable(path, "WARP_CACHE_PATH, Warp's kernel cache, at")
         except ValueError as error:
             raise ValueError(f"{error}; set it to a writable folder or unset it") from None
+
+
+def close_compile_workers(timeout: float = COMPILE_WORKERS_TIMEOUT) -> bool:
+    """Shuts down the worker pools that ``torch.compile`` started, killing any still running
+    after ``timeout`` seconds; returns whether all of them exited on their own.
+
+    Inductor shuts them down itself at exit, waiting up to 300 s for each, and its pool does
+    not always exit (pytorch/pytorch#162199): a process that had compiled then sat for minutes
+    after its last line. Nothing is waited for where nothing was compiled."""
+    async_compile = sys.modules.get("torch._inductor.async_compile")
+    pools = list(getattr(async_compile, "_pool_set", ()))
+    if not pools:
+        return True
+    # Inductor's own shutdown, in a thread that can be left waiting: a pool shut down here is
+    # not waited for again at exit
+    closing = threading.Thread(target=async_compile.shutdown_compile_workers, daemon=True)
+    closing.start()
+    closing.join(timeout)
+    if not closing.is_alive():
+        return True
+    for pool in pools:
+        process = getattr(pool, "process", None)  # a SubprocPool's sidecar process
+        if process is not None and process.poll() is None:
+            process.kill()
+    closing.join(5.0)
+    log.warning(
+        f"Inductor's compile workers had not exited {timeout:g} s after the run: stopped "
+        "without them (pytorch/pytorch#162199)"
+    )
+    return False
 
 
 @contextmanager

@@ -1,7 +1,11 @@
 """What the recipes share around the loop: which CPU-sized defaults apply, the device setting,
-Warp's start, a checkpoint's actions, the stop request, the best window."""
+Warp's start, a checkpoint's actions, the stop request, the best window, Inductor's compile
+workers at the end."""
 
 import signal
+import subprocess
+import sys
+import time
 
 import pytest
 import torch
@@ -12,6 +16,7 @@ from terrashift_rl.sim import TerraShiftConfig
 from terrashift_rl.training import load_checkpoint
 from terrashift_rl.training.checkpoint import check_action_mode, update_best
 from terrashift_rl.training.launch import (
+    close_compile_workers,
     cpu_overrides,
     refusals_end_the_run,
     resolve_device,
@@ -147,3 +152,44 @@ def test_the_best_window_writes_best_pt_only_when_its_mean_is_the_highest_yet(tm
     path.unlink()
     update_best(best, 0.0, 2, Trainer(), {}, path)
     assert best["reward"] == 2.0 and best["recent"] == [3.0, 0.0] and not path.exists()
+
+
+class SidecarPool:
+    """A compile-worker pool as Inductor's ``SubprocPool`` is to its shutdown: a sidecar process
+    that it waits for, which exits when told to, or not at all (``hangs``)."""
+
+    def __init__(self, *, hangs: bool) -> None:
+        self.process = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+        self.hangs = hangs
+
+    def shutdown(self) -> None:
+        if not self.hangs:
+            self.process.terminate()
+        self.process.wait(300)
+
+
+@pytest.mark.parametrize("hangs", [False, True])
+def test_compile_workers_that_do_not_exit_are_killed_after_the_timeout(monkeypatch, caplog, hangs):
+    from torch._inductor import async_compile
+
+    pool = SidecarPool(hangs=hangs)
+    monkeypatch.setattr(async_compile, "_pool_set", [pool])
+    try:
+        start = time.monotonic()
+        exited = close_compile_workers(timeout=1.0)
+        seconds = time.monotonic() - start
+        ended = pool.process.poll() is not None
+    finally:
+        pool.process.kill()
+    assert exited is not hangs
+    assert ended and seconds < 10.0
+    assert async_compile._pool_set == []  # Inductor's own shutdown ran: none is left for exit
+    warned = "compile workers had not exited 1 s after the run" in caplog.text
+    assert warned is hangs
+
+
+def test_without_compile_workers_nothing_is_waited_for(monkeypatch):
+    from torch._inductor import async_compile
+
+    monkeypatch.setattr(async_compile, "_pool_set", [])
+    assert close_compile_workers(timeout=0.0)
