@@ -49,7 +49,7 @@ __all__ = [
     "start_warp",
 ]
 
-COMPILE_WORKERS_TIMEOUT = 30.0
+COMPILE_WORKERS_TIMEOUT = 10.0
 """Seconds that :func:`close_compile_workers` gives Inductor's compile workers to exit."""
 
 LOCK_NAME = "run.lock"
