@@ -36,7 +36,8 @@ sooner, and ``final_goal_fraction`` is that evaluation's. Ctrl-C (or SIGTERM) st
 seeds the same way and writes what every seed has logged so far (``interrupted`` in the JSON and
 in the entries of the seeds it cut short; seeds not started are left out), then exits with
 status 130. A seed still running ``--grace`` seconds after its ``--minutes`` is stopped so too
-and kept, marked ``interrupted``.
+and kept, marked ``interrupted`` unless its run had logged its last line already (its loop
+over, only its exit left).
 
 The JSON holds ``device``, ``date``, ``command``, ``seeds`` (one entry per seed), ``resumed``
 (whether this call went on with kept runs), the medians over
@@ -58,6 +59,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 import shlex
 import signal
 import statistics
@@ -88,6 +90,8 @@ FINAL = (
     "mean_reward_per_decision",
 )
 """The last evaluation's metrics that a seed's entry keeps beside its goal fraction."""
+LAST_LINE = re.compile(r"[\d,]+ env-steps in \d+ iterations; checkpoint ")
+"""The line a run logs once its loop (and final evaluation) is over, whatever ended it."""
 
 
 def recipe_command(seed: int, args: argparse.Namespace, run_dir: Path) -> list[str]:
@@ -202,6 +206,7 @@ def run_seeds(args: argparse.Namespace, folder: Path) -> tuple[list[dict], bool]
                     first = slot * args.processes
                     env["CUDA_VISIBLE_DEVICES"] = ",".join(visible[first : first + args.processes])
                 log = (folder / f"seed_{seed}.log").open("a" if args.resume else "w")
+                part_start = log.tell()  # a resumed seed's earlier parts are in its log
                 process = subprocess.Popen(
                     recipe_command(seed, args, run_dir),
                     cwd=folder,
@@ -210,9 +215,9 @@ def run_seeds(args: argparse.Namespace, folder: Path) -> tuple[list[dict], bool]
                     stderr=subprocess.STDOUT,
                     start_new_session=True,  # torchrun's ranks are stopped with it on a timeout
                 )
-                running[seed] = (process, slot, time.perf_counter(), log, run_dir)
+                running[seed] = (process, slot, time.perf_counter(), log, run_dir, part_start)
             time.sleep(1.0)
-            for seed, (process, slot, start, log, run_dir) in list(running.items()):
+            for seed, (process, slot, start, log, run_dir, part_start) in list(running.items()):
                 elapsed = time.perf_counter() - start
                 if args.stop_at_goal and seed not in stopped and reached(run_dir, args.thresholds):
                     ctrl_c(process, args.processes)
@@ -220,6 +225,7 @@ def run_seeds(args: argparse.Namespace, folder: Path) -> tuple[list[dict], bool]
                 if process.poll() is None and elapsed < 60 * args.minutes + args.grace:
                     continue
                 overran = process.returncode is None
+                cut_short = overran and not logged_last_line(Path(log.name), part_start)
                 if overran:
                     stop(process, args.processes, signalled=seed in stopped)
                 log.close()
@@ -234,7 +240,7 @@ def run_seeds(args: argparse.Namespace, folder: Path) -> tuple[list[dict], bool]
                     )
                 ):
                     raise SystemExit(f"seed {seed} failed (status {process.returncode}):\n{tail}")
-                entry = logged_entry(seed, run_dir, args, elapsed, interrupted=overran)
+                entry = logged_entry(seed, run_dir, args, elapsed, interrupted=cut_short)
                 if entry is not None:
                     done.append(entry)
     except KeyboardInterrupt:
@@ -252,7 +258,7 @@ def interrupt(running: dict, stopped: set[int], args: argparse.Namespace) -> lis
         if seed not in stopped:
             ctrl_c(process, args.processes)
     entries = []
-    for seed, (process, _, start, log, run_dir) in running.items():
+    for seed, (process, _, start, log, run_dir, _) in running.items():
         stop(process, args.processes, signalled=True)
         log.close()
         elapsed = time.perf_counter() - start
@@ -298,6 +304,14 @@ def ctrl_c(process: subprocess.Popen, processes: int) -> None:
         process.send_signal(signal.SIGINT)
     else:
         os.killpg(process.pid, signal.SIGINT)
+
+
+def logged_last_line(log: Path, part_start: int) -> bool:
+    """Whether a run's log holds, past ``part_start`` (bytes), the line that ends a run: a run
+    past its deadline that has logged it was only slow to exit."""
+    with log.open("rb") as file:
+        file.seek(part_start)
+        return LAST_LINE.search(file.read().decode(errors="replace")) is not None
 
 
 def ended_by_ctrl_c(status: int, processes: int, log_tail: str) -> bool:

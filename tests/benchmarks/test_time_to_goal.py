@@ -1,6 +1,7 @@
 """time_to_goal.py: a seed's time to a goal fraction from its logs, evaluation time not counted,
 over every part of a resumed run; the recipe's command with a config name; the smoke launch end
-to end, stopped at its goal, by Ctrl-C and past its minutes, and resumed."""
+to end, stopped at its goal, by Ctrl-C and past its minutes, and resumed; a run past its
+deadline after its last line is not counted as cut short."""
 
 import argparse
 import json
@@ -15,7 +16,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
 
-from time_to_goal import FINAL, recipe_command, summarize  # noqa: E402
+from time_to_goal import FINAL, logged_last_line, recipe_command, summarize  # noqa: E402
 
 SCRIPT = Path(__file__).parents[2] / "benchmarks" / "time_to_goal.py"
 
@@ -212,6 +213,7 @@ def test_resume_goes_on_with_a_kept_run_and_its_clock(tmp_path):
         return seed
 
     first = one_part()
+    first_part = (keep / "seed_0.log").stat().st_size
     second = one_part("--resume")
     assert json.loads(out.read_text())["resumed"]
     assert second["env_steps"] > first["env_steps"]
@@ -222,6 +224,16 @@ def test_resume_goes_on_with_a_kept_run_and_its_clock(tmp_path):
     assert len(seconds) > len(first["curve"]) and seconds == sorted(seconds)  # one clock
     log = (keep / "seed_0.log").read_text()  # both parts' output
     assert log.count("env-steps in") == 2 and "run.resume=" in log
+    # the recipe's last line, which tells a run slow to exit from one cut short, in the second
+    assert logged_last_line(keep / "seed_0.log", part_start=first_part)
+
+
+def test_only_the_current_parts_last_line_counts(tmp_path):
+    log = tmp_path / "seed_0.log"
+    first = "1,024 env-steps in 2 iterations; checkpoint seed_0/checkpoints/last.pt (0.1 minutes)\n"
+    log.write_text(first + "mapoca_pretrain:  50%|█████     | 1.5k/3.1k\n")
+    assert logged_last_line(log, part_start=0)
+    assert not logged_last_line(log, part_start=len(first.encode()))  # resumed, not over yet
 
 
 def test_resume_needs_the_kept_runs_and_names_a_seed_without_a_checkpoint(tmp_path):
