@@ -252,6 +252,7 @@ def train(
         disable=not main,
     )
     goal_fraction = "-"  # the latest evaluation's goal fraction, for the progress bar
+    postfix: dict[str, str] = {}  # what the progress bar shows beside the env-steps
     with logging_redirect_tqdm(), StopRequest(announce=main) as stop:
         try:
             if eval_env and pretrained is not None and resume is None:  # a finetune's zero-shot
@@ -300,12 +301,13 @@ def train(
                     seconds_left=None if deadline is None else deadline - time.monotonic(),
                     seconds_per_iteration=elapsed / max(iterations, 1),
                 )
-                progress.set_postfix(
+                postfix = {
                     **({} if curriculum is None else {"stage": curriculum.describe(short=True)}),
-                    eval_goals=goal_fraction,
-                    reward=f"{metrics['reward_per_decision']:+.4f}",
-                    steps_per_s=f"{metrics['env_steps_per_s']:,.0f}",
-                )
+                    "eval_goals": goal_fraction,
+                    "reward": f"{metrics['reward_per_decision']:+.4f}",
+                    "steps_per_s": f"{metrics['env_steps_per_s']:,.0f}",
+                }
+                progress.set_postfix(postfix)
                 if distributed.any_process(stop.requested):  # every rank stops alike
                     break
                 stop.activity = "the iteration"
@@ -320,6 +322,7 @@ def train(
                         f"evaluation at {trainer.env_steps:,} env-steps: {headline(final, 'eval_')}"
                     )
                     log_scalars(logger, final, trainer.env_steps)
+                    progress.set_postfix(postfix, eval_goals=f"{final['eval_goal_fraction']:.3f}")
         except KeyboardInterrupt:
             if main and last.exists():
                 log.info(

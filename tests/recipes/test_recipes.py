@@ -295,6 +295,9 @@ def test_a_curriculum_run_killed_mid_stage_resumes_exactly(tmp_path):
 def test_smoke_train_resume_and_finetune(tmp_path):
     straight = run("mapoca_pretrain.py", "run.total_env_steps=96", "hydra.run.dir=a", cwd=tmp_path)
     assert straight.returncode == 0, straight.stderr
+    # 3 iterations, an evaluation every 4: the bar's last state shows the final evaluation's score
+    bars = [line for line in straight.stderr.splitlines() if "eval_goals=" in line]
+    assert "eval_goals=-" in bars[0] and "eval_goals=0." in bars[-1]
     first = run("mapoca_pretrain.py", "run.total_env_steps=32", "hydra.run.dir=b", cwd=tmp_path)
     assert first.returncode == 0, first.stderr
     # as a kill during a checkpoint's write leaves it; the resumed run removes it
