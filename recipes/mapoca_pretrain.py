@@ -61,7 +61,7 @@ from terrashift_rl.training.checkpoint import (
     update_best,
     weights_state,
 )
-from terrashift_rl.training.curriculum import Curriculum, CurriculumHook, make_curriculum_env
+from terrashift_rl.training.curriculum import Curriculum, CurriculumHook
 from terrashift_rl.training.evaluation import evaluate_periodically, evaluation_scene, headline
 from terrashift_rl.training.launch import (
     check_warp_cache,
@@ -168,15 +168,18 @@ def train(
     if curriculum is None:
         env = make_training_env(settings.env, networks, num_envs=num_envs, device=device, seed=seed)
     else:  # the current stage's mix of scenes; the hook advances it and holds its state
-        env = make_curriculum_env(curriculum, networks, num_envs=num_envs, device=device, seed=seed)
+        if resume is not None:  # the environments of the checkpoint's stage
+            curriculum.load_state_dict(resume["curriculum"])
         stages = CurriculumHook(
             curriculum,
-            env.base_env,
+            networks,
             evaluation_env if main else None,
-            networks.actor,
+            num_envs=num_envs,
+            device=device,
             seed=seed,
             eval_seed=run.eval_seed,
         )
+        env = stages.env
     trainer = make_trainer(env, networks, settings.train, scene_state=stages)
     if pretrained is not None:
         trainer.load_weights(pretrained)

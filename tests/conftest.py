@@ -44,9 +44,9 @@ def host_reads(monkeypatch):
 
 @pytest.fixture
 def rollouts_around_an_advance():
-    """Rollouts of 2 decisions by a curriculum env of 4 environments (two stages from an 8 x 8
-    scene with 2 agents and 1 sphere to ``target``, half of them on the first), before and after
-    its advance, with the networks of ``model``: ``(env, before, after)``."""
+    """Rollouts of 2 decisions by the curriculum envs of 4 environments (two stages from an
+    8 x 8 scene with 2 agents and 1 sphere to ``target``, half of them on the first), before and
+    after its advance, with the networks of ``model``: ``(env after, before, after)``."""
     from terrashift_rl.modules import make_terrashift_networks
     from terrashift_rl.training.curriculum import Curriculum, make_curriculum_env
     from terrashift_rl.training.settings import CurriculumSettings
@@ -57,12 +57,13 @@ def rollouts_around_an_advance():
         )
         curriculum = Curriculum(target, settings)
         networks = make_terrashift_networks(model)
-        env = make_curriculum_env(curriculum, networks, num_envs=4, device="cpu", seed=0)
+        envs = []
         with torch.no_grad():
-            before = env.rollout(2, networks.actor)
-            curriculum.advance(env_steps=8)
-            curriculum.seat(env.base_env, seed=0)
-            after = env.rollout(2, networks.actor)
-        return env, before, after
+            for _ in range(2):
+                env = make_curriculum_env(curriculum, networks, num_envs=4, device="cpu", seed=0)
+                envs.append(env.rollout(2, networks.actor))
+                if not curriculum.final:
+                    curriculum.advance(env_steps=8)
+        return (env, *envs)
 
     return rollouts

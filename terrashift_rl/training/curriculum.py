@@ -17,13 +17,14 @@ paper, Section 5.2.2), while a policy that learnt a small scene transfers to a l
   the earlier stages, spread evenly over them (the earliest first where they do not divide),
   so that what was learnt there is kept. One simulator holds one grid size, so each stage in
   the mix has its own batch of environments; :class:`~terrashift_rl.envs.mixed.MixedSceneEnv`
-  steps them as one batch padded to the target's agents and spheres, which the networks
-  (attention over agents and objects) and MA-POCA's loss (absent agents masked out) take as
-  they are. The padding is the target's from the first stage on, so the batch keeps its shapes
-  through every advance (the policy's captured graphs, the transforms and the checkpoints'
-  carried tensordict stay valid); the price is the networks' work on absent agents in the
-  early stages (a 15 x 15 stage with 8 agents padded to 24 costs the agent-wise layers three
-  times its own).
+  steps them as one batch padded to the current stage's agents and spheres (the most in the
+  mix: every size grows stage by stage), which the networks (attention over agents and
+  objects) and MA-POCA's loss (absent agents masked out) take as they are. The agent-wise
+  layers' work follows the stage: a 15 x 15 stage with 8 agents costs them a third of what it
+  would padded to a 45 x 45 target's 24. Each advance builds the next stage's environments,
+  which the trainer collects from in new episodes
+  (:meth:`~terrashift_rl.training.trainer.OnPolicyTrainer.set_env`), capturing its graphs and,
+  under ``train.compile``, compiling its update again for their shapes.
 
 :meth:`Curriculum.state_dict` holds the stage and the env-steps of each advance, so a resumed
 run continues at the same stage.
@@ -221,11 +222,6 @@ class Curriculum:
         ``i`` of the mix gets ``seed + stage * stages + i``, so every stage's streams differ."""
         return seed + self.stage * len(self.scenes)
 
-    def seat(self, env: MixedSceneEnv, *, seed: int) -> None:
-        """Gives ``env`` the current stage's :meth:`mix` over its environments; their episodes
-        start at the next reset."""
-        env.set_scenes(*self.mix(env.batch_size[0]), seed=self.stage_seed(seed))
-
     def state_dict(self) -> dict[str, Any]:
         """The stage, the env-steps of each advance and the stages' sizes."""
         return {
@@ -256,45 +252,51 @@ def make_curriculum_env(
     device: torch.device | str,
     seed: int,
 ) -> TransformedEnv:
-    """The training environments of ``curriculum``: its current stage's mix
-    (:meth:`Curriculum.seat`) in a :class:`~terrashift_rl.envs.mixed.MixedSceneEnv` padded to
-    the target's agents and spheres from the first stage on, so that the batch keeps its shapes
-    (and a captured graph stays valid) through every advance, with the transforms the recurrent
-    policy needs (``is_init`` and its state)."""
-    target = curriculum.scenes[-1]
-    check_scene(target, networks)  # every stage observes as the target does
+    """The training environments of ``curriculum``'s current stage: its :meth:`~Curriculum.mix`
+    in a :class:`~terrashift_rl.envs.mixed.MixedSceneEnv` padded to the stage's agents and
+    spheres and seeded with :meth:`~Curriculum.stage_seed`, with the transforms the recurrent
+    policy needs (``is_init`` and its state). The target is checked against the networks
+    (:func:`~terrashift_rl.training.terrashift.check_scene`): every stage observes as it does."""
+    check_scene(curriculum.scenes[-1], networks)
+    scene = curriculum.scene
     base = MixedSceneEnv(
         *curriculum.mix(num_envs),
-        num_agents=target.num_agents,
-        num_objects=target.num_objects,
+        num_agents=scene.num_agents,
+        num_objects=scene.num_objects,
         device=device,
         seed=curriculum.stage_seed(seed),
     )
-    primer = networks.make_tensordict_primer(target.num_agents)
+    primer = networks.make_tensordict_primer(scene.num_agents)
     return TransformedEnv(base, Compose(InitTracker(), primer))
 
 
 class CurriculumHook(TrainerHook):
     """Runs a :class:`Curriculum` in an :class:`~terrashift_rl.training.trainer.OnPolicyTrainer`
-    on the environments of :func:`make_curriculum_env` (handed to
-    :func:`~terrashift_rl.training.terrashift.make_trainer` as its ``scene_state``).
+    that collects from the hook's :attr:`env` (hand it and the hook to
+    :func:`~terrashift_rl.training.terrashift.make_trainer`, the hook as ``scene_state``).
 
     Checkpoints hold the stage and the simulators of every scene in the mix, so a resumed run
-    continues at the same stage in the same episodes. :meth:`after_iteration`, called by every
-    process after each iteration, scores the current stage every ``eval_every`` iterations
-    until the target and advances every process together when it passes the threshold; at the
-    target it scores the first stage's scene every ``retention_every`` iterations.
+    continues at the same stage in the same episodes: load the checkpoint's ``curriculum``
+    entry into the curriculum (:meth:`Curriculum.load_state_dict`) before building the hook,
+    so that its environments are the stage's. :meth:`after_iteration`, called by every process
+    after each iteration, scores the current stage every ``eval_every`` iterations until the
+    target and advances every process together when it passes the threshold; at the target it
+    scores the first stage's scene every ``retention_every`` iterations.
 
     Args:
         curriculum: the stages and the run's place in them.
-        env: the training environments (``make_curriculum_env(...).base_env``).
+        networks: the networks that train; their actor is scored.
         make_evaluation_env: builds the evaluation environments of a scene (evaluation mode
             and its episodes and seed applied); None on a process that does not evaluate.
-        actor: the policy to score.
 
     Keyword Args:
-        seed: the seed of this process's training environments.
+        num_envs: this process's training environments.
+        device: where they simulate.
+        seed: their seed (:func:`make_curriculum_env`'s).
         eval_seed: the seed of every evaluation's scenes.
+
+    Attributes:
+        env: the current stage's training environments (:func:`make_curriculum_env`).
     """
 
     state_keys = ("curriculum", "simulator")
@@ -302,25 +304,29 @@ class CurriculumHook(TrainerHook):
     def __init__(
         self,
         curriculum: Curriculum,
-        env: MixedSceneEnv,
+        networks: TerraShiftNetworks,
         make_evaluation_env: Callable[[TerraShiftConfig], EnvBase] | None,
-        actor: Callable,
         *,
+        num_envs: int,
+        device: torch.device | str,
         seed: int,
         eval_seed: int,
     ) -> None:
         self.curriculum = curriculum
-        self.env = env
+        self.networks = networks
         self.make_evaluation_env = make_evaluation_env
-        self.actor = actor
+        self.num_envs = num_envs
+        self.device = device
         self.seed = seed
         self.eval_seed = eval_seed
         self._evaluation: tuple[int, EnvBase] | None = None  # (stage, its environments)
+        self._env_stage = curriculum.stage
+        self.env = self._make_env()
 
     def after_iteration(self, trainer: OnPolicyTrainer) -> dict[str, float]:
         """Every ``eval_every`` iterations before the target: scores the current stage (on the
         evaluating process) and, if that passes the threshold, starts the next stage on every
-        process at once (the environments take its mix and the trainer starts new episodes).
+        process at once (the trainer collects from its environments in new episodes).
         Returns the metrics to log: ``curriculum_stage`` (from 1, after any advance) and the
         scores, ``curriculum_eval_goal_fraction``, ...; at the target, every
         ``retention_every`` iterations, the first stage's: ``curriculum_start_eval_...``."""
@@ -340,19 +346,29 @@ class CurriculumHook(TrainerHook):
             passed = curriculum.passes(scores["eval_goal_fraction"])
         if distributed.any_process(passed, "the next curriculum stage"):
             curriculum.advance(env_steps=trainer.env_steps)
-            curriculum.seat(self.env, seed=self.seed)
-            trainer.restart_episodes()
+            self._env_stage = curriculum.stage
+            self.env = self._make_env()
+            trainer.set_env(self.env)
         return {
             "curriculum_stage": float(curriculum.stage + 1),
             **{f"curriculum_{name}": value for name, value in scores.items()},
         }
+
+    def _make_env(self) -> TransformedEnv:
+        return make_curriculum_env(
+            self.curriculum,
+            self.networks,
+            num_envs=self.num_envs,
+            device=self.device,
+            seed=self.seed,
+        )
 
     def _evaluate(self, trainer: OnPolicyTrainer, stage: int) -> dict[str, float]:
         if self._evaluation is None or self._evaluation[0] != stage:
             self._evaluation = (stage, self.make_evaluation_env(self.curriculum.scenes[stage]))
         return evaluate_periodically(
             self._evaluation[1],
-            self.actor,
+            self.networks.actor,
             seed=self.eval_seed,
             policies=trainer.evaluation_policy,
         )
@@ -360,10 +376,18 @@ class CurriculumHook(TrainerHook):
     def state_dict(self) -> dict[str, Any]:
         return {
             "curriculum": self.curriculum.state_dict(),
-            "simulator": self.env.simulator_state(),
+            "simulator": self.env.base_env.simulator_state(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restores the stage and the simulators; raises ``ValueError`` if the state's stage
+        is not the one this hook's environments were built for."""
+        saved = state["curriculum"]["stage"]
+        if saved != self._env_stage:
+            raise ValueError(
+                f"the checkpoint's curriculum is at stage {saved + 1}, these environments were "
+                f"built at stage {self._env_stage + 1}: load its curriculum entry into the "
+                "Curriculum (Curriculum.load_state_dict) before building the CurriculumHook"
+            )
         self.curriculum.load_state_dict(state["curriculum"])
-        self.curriculum.seat(self.env, seed=self.seed)
-        self.env.load_simulator_state(state["simulator"])
+        self.env.base_env.load_simulator_state(state["simulator"])

@@ -132,10 +132,10 @@ def make_trainer(
     # launches (it runs eagerly) favour.
     max_batch = min(config.num_envs, 4 * math.ceil(config.num_envs / config.minibatches))
     algorithm = config.loss.make(networks, max_batch=max_batch)
-    if config.compile:
-        networks.compile_networks(options=COMPILE_OPTIONS)
+    if config.compile:  # static shapes: a curriculum's stages each compile their own
+        networks.compile_networks(dynamic=False, options=COMPILE_OPTIONS)
         for head in algorithm.networks.values():
-            head.module.compile(options=COMPILE_OPTIONS)
+            head.module.compile(dynamic=False, options=COMPILE_OPTIONS)
     policy_parameters = [*networks.trunk.parameters(), *networks.policy_head.parameters()]
     critic_parameters = [p for critic in algorithm.critics for p in critic.parameters()]
     optimizer = torch.optim.AdamW(
@@ -165,9 +165,9 @@ def terrashift_hooks(
 ) -> list[TrainerHook]:
     """The hooks a TerraShift trainer runs with ``config``, in the order they are called;
     ``scene_state`` (:class:`SimulatorState` if None) holds the environments' state."""
-    hooks: list[TrainerHook] = [ActionCheck(env)]  # before anything reads the batch
+    hooks: list[TrainerHook] = [ActionCheck()]  # before anything reads the batch
     if config.stagger_episodes:
-        hooks.append(StaggeredEpisodes(env))
+        hooks.append(StaggeredEpisodes())
     loss = config.loss
     if isinstance(loss, MAPOCAConfig) and loss.teacher_coeff:  # MA-POCA's alone
         schedule = LinearSchedule(
@@ -178,15 +178,13 @@ def terrashift_hooks(
 
 
 class StaggeredEpisodes(TrainerHook):
-    """Spreads the first episodes' step limits over an episode's length after the first reset
-    (:meth:`~terrashift_rl.envs.terrashift.TerraShiftEnv.stagger_episodes`), so that the
-    environments do not all reset at the same decision."""
-
-    def __init__(self, env: TerraShiftEnv):
-        self.env = env
+    """Spreads the first episodes' step limits over an episode's length after each reset of
+    every environment (:meth:`~terrashift_rl.envs.terrashift.TerraShiftEnv.stagger_episodes`
+    of ``trainer.env.base_env``), so that the environments do not all reset at the same
+    decision."""
 
     def on_reset(self, trainer: OnPolicyTrainer, tensordict: TensorDictBase) -> None:
-        self.env.stagger_episodes()
+        trainer.env.base_env.stagger_episodes()
 
 
 class ScriptedTeacher(TrainerHook):
@@ -220,14 +218,11 @@ class ScriptedTeacher(TrainerHook):
 class ActionCheck(TrainerHook):
     """Raises the environment's ``ValueError`` once per iteration if the policy acted with NaN
     or infinity during the collection
-    (:meth:`~terrashift_rl.envs.terrashift.TerraShiftEnv.check_actions`): one host
-    synchronisation per iteration instead of one per step."""
-
-    def __init__(self, env: TerraShiftEnv):
-        self.env = env
+    (:meth:`~terrashift_rl.envs.terrashift.TerraShiftEnv.check_actions` of
+    ``trainer.env.base_env``): one host synchronisation per iteration instead of one per step."""
 
     def on_batch_collected(self, trainer: OnPolicyTrainer, data: TensorDictBase) -> None:
-        self.env.check_actions()
+        trainer.env.base_env.check_actions()
 
 
 class SimulatorState(TrainerHook):

@@ -240,10 +240,16 @@ class OnPolicyTrainer:
             hook.on_batch_collected(self, data)
         return data
 
-    def restart_episodes(self) -> None:
-        """Starts the next collection from a reset of every environment (after the
-        environments changed, a curriculum's next stage), as the run's first one does."""
+    def set_env(self, env: EnvBase) -> None:
+        """Collects from ``env`` from the next iteration on (a curriculum's next stage, whose
+        batch may have other shapes), starting from a reset of every environment as the run's
+        first collection does; the graphs captured on the former environment's shapes are
+        dropped."""
+        if env.device != self.device:
+            raise ValueError(f"the new env is on {env.device}, the trainer on {self.device}")
+        self.env = env
         self._carry = None
+        self._reset_graphs()
 
     def evaluation_policy(
         self, exploration: ExplorationType

@@ -258,6 +258,7 @@ def test_a_curriculum_run_advances_a_stage_and_checkpoints_it(tmp_path):
     assert "stage 1's scene at 64 env-steps: goal fraction" in result.stdout
     saved = load_checkpoint(tmp_path / "a/checkpoints/last.pt")
     assert saved["curriculum"] == {"stage": 1, "advances": [32], "scenes": [[6, 2, 1], [8, 4, 2]]}
+    assert saved["carry"]["agents", "mask"].shape[-1] == 4  # padded to the second stage's agents
     assert saved["curriculum_config"]["kind"] == "auto"
 
 

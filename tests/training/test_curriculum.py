@@ -24,7 +24,8 @@ from terrashift_rl.training.curriculum import (
     make_curriculum_env,
     stage_scenes,
 )
-from terrashift_rl.training.settings import CurriculumSettings
+from terrashift_rl.training.settings import CurriculumSettings, TrainConfig
+from terrashift_rl.training.terrashift import make_trainer
 
 
 def sizes(scenes):
@@ -85,7 +86,10 @@ def test_the_hook_scores_the_current_stage_then_at_the_target_the_first_stage(mo
     monkeypatch.setattr(curriculum_module, "evaluate_periodically", evaluate)
     settings = CurriculumSettings(eval_every=2, retention_every=3)
     curriculum = Curriculum(TerraShiftConfig.preset("large"), settings)
-    hook = CurriculumHook(curriculum, None, lambda scene: scene, None, seed=0, eval_seed=1)
+    networks = make_terrashift_networks(TerraShiftModelConfig.small())
+    hook = CurriculumHook(
+        curriculum, networks, lambda scene: scene, num_envs=4, device="cpu", seed=0, eval_seed=1
+    )
     trainer = SimpleNamespace(evaluation_policy=None)
 
     def after(iteration):
@@ -181,14 +185,71 @@ def test_a_mixed_env_restored_from_its_state_steps_as_the_saved_one_did():
     torch.testing.assert_close(restored.step(td)["next"], expected)
 
 
-def test_the_curriculum_env_keeps_its_shapes_through_an_advance(rollouts_around_an_advance):
+def test_the_curriculum_env_pads_to_the_current_stages_agents_and_spheres(
+    rollouts_around_an_advance,
+):
     target = tiny(grid_size=12, num_agents=4, num_objects=2, num_goals=2, spawn_margin=1)
     env, before, after = rollouts_around_an_advance(target, TerraShiftModelConfig.small())
     assert [scene.grid_size for scene in env.base_env.scenes] == [8, 12]
-    assert before["agents", "observation"].shape == after["agents", "observation"].shape
-    assert before["agents", "mask"][:, 0].sum(-1).tolist() == [2, 2, 2, 2]
+    assert before["agents", "mask"][:, 0].tolist() == [[True, True]] * 4
+    assert before["objects_mask"].shape == (4, 2, 1)
     assert after["agents", "mask"][:, 0].sum(-1).tolist() == [2, 2, 4, 4]
     assert after["objects_mask"].shape == (4, 2, 2)
+    # the recurrent state follows the agents
+    assert after["next", "agents", "recurrent_state"].shape[:3] == (4, 2, 4)
+
+
+def test_an_advance_hands_the_trainer_the_next_stages_environments(monkeypatch):
+    monkeypatch.setattr(
+        curriculum_module, "evaluate_periodically", lambda *a, **k: {"eval_goal_fraction": 0.9}
+    )
+    curriculum, networks, hook = curriculum_run()
+    config = TrainConfig(num_envs=4, steps_per_iteration=2, minibatches=1)
+    trainer = make_trainer(hook.env, networks, config, scene_state=hook)
+    assert trainer.collect()["agents", "mask"].shape == (4, 2, 2)
+    trainer.iteration = 1
+    assert hook.after_iteration(trainer)["curriculum_stage"] == 2.0
+    assert trainer.env is hook.env and [s.num_agents for s in hook.env.base_env.scenes] == [2, 4]
+    trainer.train_iteration()  # a reset of the new environments (staggered), then an update
+    data = trainer.collect()
+    assert data["agents", "mask"][:, 0].sum(-1).tolist() == [2, 2, 4, 4]
+    # a checkpoint of the second stage resumes into that stage's environments
+    state = trainer.state_dict()
+    _, _, early = curriculum_run()
+    with pytest.raises(ValueError, match="at stage 2, these environments were built at stage 1"):
+        make_trainer(early.env, networks, config, scene_state=early).load_state_dict(state)
+    resumed_curriculum, resumed_networks, resumed_hook = curriculum_run(state["curriculum"])
+    resumed = make_trainer(resumed_hook.env, resumed_networks, config, scene_state=resumed_hook)
+    resumed.load_state_dict(state)
+    assert resumed_curriculum.stage == 1
+    torch.manual_seed(0)
+    expected = trainer.collect()
+    torch.manual_seed(0)
+    torch.testing.assert_close(resumed.collect(), expected)
+
+
+def curriculum_run(state=None):
+    """A two-stage curriculum (8 x 8, 2 agents, 1 sphere to 12 x 12, 4 agents, 2 spheres, half
+    the environments kept on the first), the small networks and its hook over 4 environments
+    that advances at every evaluation; at ``state``'s stage if given."""
+    target = tiny(grid_size=12, num_agents=4, num_objects=2, num_goals=2, spawn_margin=1)
+    settings = CurriculumSettings(
+        stages=2,
+        start_grid_size=8,
+        start_num_agents=2,
+        start_num_objects=1,
+        mix=0.5,
+        eval_every=1,
+    )
+    curriculum = Curriculum(target, settings)
+    if state is not None:
+        curriculum.load_state_dict(state)
+    torch.manual_seed(0)
+    networks = make_terrashift_networks(TerraShiftModelConfig.small())
+    hook = CurriculumHook(
+        curriculum, networks, lambda scene: scene, num_envs=4, device="cpu", seed=0, eval_seed=1
+    )
+    return curriculum, networks, hook
 
 
 # --- resume --------------------------------------------------------------------------------

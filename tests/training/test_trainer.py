@@ -6,6 +6,7 @@ import copy
 import dataclasses
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -220,6 +221,14 @@ def test_a_checkpoint_with_capturable_adamw_resumes_without_cuda_graphs():
         assert isinstance(group["lr"], float) and not group["capturable"]
     resumed.train_iteration()  # AdamW would refuse tensor rates or a device step count here
     assert resumed.iteration == 2
+
+
+def test_a_new_env_on_another_device_is_refused_naming_both():
+    trainer = make_trainer()
+    env = trainer.env
+    with pytest.raises(ValueError, match="the new env is on cuda, the trainer on cpu"):
+        trainer.set_env(SimpleNamespace(device=torch.device("cuda")))
+    assert trainer.env is env
 
 
 TEACHER = ("agents", "teacher_action")
