@@ -29,9 +29,6 @@ class MixedSceneEnv(EnvBase):
     of absent agents are dropped. Networks that attend over agents and objects take the padded
     batch as it is; a loss must leave absent agents out (MA-POCA's does).
 
-    The specs are fixed at construction, so :meth:`set_scenes` can swap the scenes for others
-    (a curriculum's next stage) under the same policy, transforms and captured graphs.
-
     Every scene keeps the first's observations: its heightmap resolution, its camera
     (``camera_resolution``, the same R x R frame whatever the grid) and whether it observes
     the objects or hands them to critics alone (``privileged_objects``). The camera draws the
@@ -73,6 +70,13 @@ class MixedSceneEnv(EnvBase):
     ) -> None:
         if not scenes:
             raise ValueError("MixedSceneEnv needs at least one scene")
+        if len(scenes) != len(num_envs):
+            raise ValueError(
+                f"MixedSceneEnv needs one count of environments per scene, got {len(scenes)} "
+                f"scene(s) and num_envs={list(num_envs)}"
+            )
+        if any(isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in num_envs):
+            raise ValueError(f"num_envs must hold integers >= 1, got {list(num_envs)}")
         self.num_agents = max(s.num_agents for s in scenes) if num_agents is None else num_agents
         self.num_objects = (
             max(s.num_objects for s in scenes) if num_objects is None else num_objects
@@ -81,37 +85,6 @@ class MixedSceneEnv(EnvBase):
         self.camera_resolution = scenes[0].camera_resolution
         self.observe_objects = scenes[0].observe_objects
         self.privileged_objects = scenes[0].privileged_objects
-        super().__init__(device=device, batch_size=torch.Size([sum(num_envs)]))
-        self.set_scenes(scenes, num_envs, seed=seed)
-        set_specs(
-            self,
-            num_agents=self.num_agents,
-            num_objects=self.num_objects,
-            heightmap_resolution=self.heightmap_resolution,
-            observe_objects=self.observe_objects,
-            privileged_objects=self.privileged_objects,
-            camera_resolution=self.camera_resolution,
-        )
-
-    def set_scenes(
-        self, scenes: Sequence[TerraShiftConfig], num_envs: Sequence[int], *, seed: int
-    ) -> None:
-        """Replaces the scenes by ``scenes`` with ``num_envs`` environments each (as many in all
-        as this env has, each scene within its padding and with its observations); their
-        episodes start at the next reset. Scene ``i``'s simulator is seeded with ``seed + i``.
-        """
-        if len(scenes) != len(num_envs):
-            raise ValueError(
-                f"MixedSceneEnv needs one count of environments per scene, got {len(scenes)} "
-                f"scene(s) and num_envs={list(num_envs)}"
-            )
-        if any(isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in num_envs):
-            raise ValueError(f"num_envs must hold integers >= 1, got {list(num_envs)}")
-        if sum(num_envs) != self.batch_size[0]:
-            raise ValueError(
-                f"num_envs={list(num_envs)} holds {sum(num_envs)} environments, this env "
-                f"{self.batch_size[0]}"
-            )
         for scene in scenes:
             if (
                 scene.num_agents > self.num_agents
@@ -130,6 +103,7 @@ class MixedSceneEnv(EnvBase):
                     f"a scene with {_settings(scene, names)} does not observe as this env, "
                     f"{_settings(self, names)}: every scene needs the same"
                 )
+        super().__init__(device=device, batch_size=torch.Size([sum(num_envs)]))
         self.envs = [
             TerraShiftEnv(scene, num_envs=n, device=self.device, seed=seed + i)
             for i, (scene, n) in enumerate(zip(scenes, num_envs, strict=True))
@@ -138,6 +112,15 @@ class MixedSceneEnv(EnvBase):
         self._rows = [
             slice(end - n, end) for n, end in zip(num_envs, accumulate(num_envs), strict=True)
         ]
+        set_specs(
+            self,
+            num_agents=self.num_agents,
+            num_objects=self.num_objects,
+            heightmap_resolution=self.heightmap_resolution,
+            observe_objects=self.observe_objects,
+            privileged_objects=self.privileged_objects,
+            camera_resolution=self.camera_resolution,
+        )
 
     # --- EnvBase API ----------------------------------------------------------------------
     def _set_seed(self, seed: int | None) -> None:

@@ -158,19 +158,6 @@ def test_the_mixed_env_pads_earlier_stages_with_absent_agents_and_empty_slots():
     assert truncated == [[0, 0], [1, 0], [0, 1], [1, 0], [0, 0], [1, 1], [0, 0]]
 
 
-def test_set_scenes_swaps_the_scenes_under_the_same_specs():
-    first = tiny(grid_size=8, num_agents=2, num_objects=1, num_goals=1, spawn_margin=1)
-    second = tiny(grid_size=12, num_agents=4, num_objects=3, num_goals=3, spawn_margin=1)
-    env = MixedSceneEnv([first], [3], num_agents=4, num_objects=3, seed=0)
-    specs = env.full_observation_spec.clone()
-    assert env.rollout(2)["agents", "mask"].sum(-1).unique().tolist() == [2]
-    env.set_scenes([first, second], [1, 2], seed=5)
-    td = env.rollout(2)
-    assert env.full_observation_spec == specs
-    assert td["agents", "mask"][:, 0].sum(-1).tolist() == [2, 4, 4]
-    assert td["objects_mask"].shape == (3, 2, 3)
-
-
 def test_a_mixed_env_restored_from_its_state_steps_as_the_saved_one_did():
     scenes = [tiny(num_agents=2, num_objects=1, num_goals=1), tiny(grid_size=20, num_agents=3)]
     env = MixedSceneEnv(scenes, [2, 2], seed=0)
@@ -327,14 +314,17 @@ def test_training_settings_a_curriculum_cannot_train_with_are_refused(training, 
         )
 
 
-def test_a_scene_that_does_not_fit_the_mixed_envs_padding_is_refused():
+def test_a_mixed_env_of_scenes_or_counts_that_do_not_fit_is_refused():
     with pytest.raises(ValueError, match="a 16-ray heightmap does not fit this env's"):
         MixedSceneEnv([tiny(), tiny(heightmap_resolution=16)], [1, 1])
-    env = MixedSceneEnv([tiny()], [2], num_agents=9, num_objects=5)
     with pytest.raises(ValueError, match="10 agents, 4 spheres .* does not fit this env's 9"):
-        env.set_scenes([tiny(num_agents=10)], [2], seed=0)
-    with pytest.raises(ValueError, match=r"num_envs=\[1, 2\] holds 3 environments, this env 2"):
-        env.set_scenes([tiny(), tiny()], [1, 2], seed=0)
+        MixedSceneEnv([tiny(num_agents=10)], [2], num_agents=9, num_objects=5)
+    with pytest.raises(ValueError, match=r"one count of environments per scene, got 2 scene"):
+        MixedSceneEnv([tiny(), tiny()], [3])
+    with pytest.raises(ValueError, match=r"num_envs must hold integers >= 1, got \[2, 0\]"):
+        MixedSceneEnv([tiny(), tiny()], [2, 0])
+    with pytest.raises(ValueError, match="needs at least one scene"):
+        MixedSceneEnv([], [])
 
 
 def test_ma_pocas_loss_on_a_padded_scene_equals_its_loss_on_the_scene_alone():
