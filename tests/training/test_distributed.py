@@ -253,6 +253,28 @@ def test_the_recipes_under_torchrun_write_from_rank_zero_alone(tmp_path, device)
     assert load_checkpoint(tmp_path / "single/checkpoints/last.pt")["env_steps"] == 96
 
 
+@pytest.mark.slow
+def test_a_curriculum_under_torchrun_advances_every_process_to_the_next_stages_padding(tmp_path):
+    curriculum = (
+        "curriculum=auto",
+        "curriculum.stages=3",
+        "curriculum.start_grid_size=6",
+        "curriculum.start_num_agents=2",
+        "curriculum.start_num_objects=1",
+        "curriculum.threshold=0",  # rank 0's first evaluation advances both
+        "curriculum.eval_every=2",
+    )
+    script = ROOT / "recipes" / "mapoca_pretrain.py"
+    result = torchrun(script, tmp_path, *curriculum, "run.total_env_steps=192", "hydra.run.dir=a")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.count("stage 2/3: 7x7 columns, 3 agents, 2 spheres from 128") == 1
+    last = load_checkpoint(tmp_path / "a/checkpoints/last.pt")
+    assert last["curriculum"]["stage"] == 1 and last["iteration"] == 3
+    # both ranks collected the second stage's batch, padded to its 3 agents, not the target's 4
+    for carry in (last["carry"], last["rank_states"][0]["carry"]):
+        assert carry["agents", "mask"].shape[-1] == 3
+
+
 STOPS_ANSWERING = """
 import sys, time
 import torch
