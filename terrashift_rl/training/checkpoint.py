@@ -98,6 +98,7 @@ ENTRIES = {
     "curriculum": (dict,),
     "iteration": (int,),
     "env_steps": (int,),
+    "schedule_start": (int,),
     "mean_reward_per_decision": (float,),
     "optimizer": (dict,),
     "value_normalizer": (dict, type(None)),
@@ -383,6 +384,8 @@ def upgrade(state: dict[str, Any]) -> dict[str, Any]:
       take their names now, and a setting the checkpoint predates takes its default then.
     - ``best``: absent before ``best.pt`` existed, an empty window.
     - ``run_seconds``: absent before a resumed run's clock went on from its checkpoint, 0.
+    - ``schedule_start``: absent before the schedules could start again, 0; and
+      ``curriculum_config.restart_schedules`` then false.
     - :data:`RETIRED_SETTINGS` are dropped.
 
     Example:
@@ -404,6 +407,9 @@ def upgrade(state: dict[str, Any]) -> dict[str, Any]:
     if "optimizer" in state:
         state.setdefault("best", {"reward": -math.inf, "recent": []})
         state.setdefault("run_seconds", 0.0)
+        state.setdefault("schedule_start", 0)
+    if "curriculum_config" in state:
+        state["curriculum_config"] = {"restart_schedules": False, **state["curriculum_config"]}
     for name, retired in RETIRED_SETTINGS.items():
         if name in state:
             state[name] = {key: value for key, value in state[name].items() if key not in retired}

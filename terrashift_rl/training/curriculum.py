@@ -24,7 +24,9 @@ paper, Section 5.2.2), while a policy that learnt a small scene transfers to a l
   would padded to a 45 x 45 target's 24. Each advance builds the next stage's environments,
   which the trainer collects from in new episodes
   (:meth:`~terrashift_rl.training.trainer.OnPolicyTrainer.set_env`), capturing its graphs and,
-  under ``train.compile``, compiling its update again for their shapes.
+  under ``train.compile``, compiling its update again for their shapes. With
+  ``restart_schedules`` the training schedules start again at each advance
+  (:meth:`~terrashift_rl.training.trainer.OnPolicyTrainer.restart_schedules`).
 
 :meth:`Curriculum.state_dict` holds the stage and the env-steps of each advance, so a resumed
 run continues at the same stage.
@@ -349,6 +351,8 @@ class CurriculumHook(TrainerHook):
             self._env_stage = curriculum.stage
             self.env = self._make_env()
             trainer.set_env(self.env)
+            if curriculum.settings.restart_schedules:
+                trainer.restart_schedules()
         return {
             "curriculum_stage": float(curriculum.stage + 1),
             **{f"curriculum_{name}": value for name, value in scores.items()},

@@ -353,6 +353,11 @@ class CurriculumSettings:
     mix: float = setting(0.25, interval(0, 1, high_open=True))
     """Fraction of the training environments kept on earlier stages once there are any,
     spread evenly over them."""
+    restart_schedules: bool = setting(False)
+    """Whether each advance starts the training schedules (the learning rates' factor, the
+    clip ranges, the entropy weight and the gradient-norm limit, over
+    ``train.schedule_iterations``) again from their starts, so that every stage anneals as the
+    first does; if false they run once, from the run's first iteration, whatever the stage."""
 
     def __post_init__(self) -> None:
         check_fields(self, "curriculum")

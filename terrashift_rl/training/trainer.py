@@ -196,6 +196,8 @@ class OnPolicyTrainer:
         }
         self.iteration = 0
         self.env_steps = 0
+        self.schedule_start = 0
+        """The iteration the schedules count from (:meth:`restart_schedules`)."""
         self._carry: TensorDictBase | None = None
 
     # --- one iteration ---------------------------------------------------------------------
@@ -250,6 +252,12 @@ class OnPolicyTrainer:
         self.env = env
         self._carry = None
         self._reset_graphs()
+
+    def restart_schedules(self) -> None:
+        """Starts every schedule (``schedules``: the learning rates' factor, the clip ranges,
+        the entropy weight, the gradient-norm limit) again from its start at the next
+        iteration, as at the run's first (a curriculum's next stage)."""
+        self.schedule_start = self.iteration
 
     def evaluation_policy(
         self, exploration: ExplorationType
@@ -442,6 +450,7 @@ class OnPolicyTrainer:
             "optimizer": self.optimizer.state_dict(),
             "iteration": self.iteration,
             "env_steps": self.env_steps,
+            "schedule_start": self.schedule_start,
             "train_config": asdict(self.config),
             "value_normalizer": (None if normalizer is None else normalizer.state_dict()),
             "torch_rng": torch.get_rng_state(),
@@ -481,6 +490,7 @@ class OnPolicyTrainer:
             normalizer.load_state_dict(state["value_normalizer"])
         self.iteration = state["iteration"]
         self.env_steps = state["env_steps"]
+        self.schedule_start = state["schedule_start"]
         own = distributed.rank_entries(state, self._rank_keys)
         if own is not None:
             torch.set_rng_state(own["torch_rng"])
@@ -543,15 +553,16 @@ class OnPolicyTrainer:
                 group["lr"] = base * float(scale)
 
     def _apply_schedules(self) -> None:
-        factor = self.schedules["lr_factor"](self.iteration)
+        at = self.iteration - self.schedule_start
+        factor = self.schedules["lr_factor"](at)
         self._lr_scales[1].fill_(factor)
         if self.config.lr_schedule == "linear":
             self._lr_scales[0].fill_(factor)
         self._set_learning_rates()
         # the loss's coefficients are buffers: assigning a float copies in place
         for name in ("clip_epsilon", "entropy_coeff", "clip_value"):
-            setattr(self.loss, name, self.schedules[name](self.iteration))
-        self._max_grad_norm.fill_(self.schedules["max_grad_norm"](self.iteration))
+            setattr(self.loss, name, self.schedules[name](at))
+        self._max_grad_norm.fill_(self.schedules["max_grad_norm"](at))
 
     def _prepare_optimizer(self) -> None:
         """With CUDA graphs, AdamW must be capturable (its step count on the device) and its

@@ -152,6 +152,7 @@ def test_the_converter_brings_an_earlier_layout_to_the_current_one_and_leaves_th
         "model_config": {"embed_dim": 32, "policy_output_gain": 0.01},  # a retired setting
         "train_config": {"algo": "mappo", "num_envs": 8, "gamma": 0.9, "value_clip_end": 0.2},
         "optimizer": {},
+        "curriculum_config": {"kind": "auto"},
     }
     new = upgrade(old)
     assert new["algo"] == "mappo" and new["algorithm_networks"] == {}
@@ -163,5 +164,8 @@ def test_the_converter_brings_an_earlier_layout_to_the_current_one_and_leaves_th
     assert "teacher_coeff" not in new["train_config"]["loss"]  # MAPPO has none
     assert new["best"] == {"reward": -float("inf"), "recent": []}
     assert new["run_seconds"] == 0.0  # a resumed run's clock starts where none was kept
+    # the schedules ran once, from the first iteration, before they could start again
+    assert new["schedule_start"] == 0
+    assert new["curriculum_config"] == {"restart_schedules": False, "kind": "auto"}
     assert upgrade(new) == new
     assert upgrade({"step": 1}) == {"step": 1}  # not a training checkpoint

@@ -215,10 +215,24 @@ def test_an_advance_hands_the_trainer_the_next_stages_environments(monkeypatch):
     torch.testing.assert_close(resumed.collect(), expected)
 
 
-def curriculum_run(state=None):
+@pytest.mark.parametrize("restart", [False, True])
+def test_an_advance_restarts_the_schedules_only_if_asked(monkeypatch, restart):
+    monkeypatch.setattr(
+        curriculum_module, "evaluate_periodically", lambda *a, **k: {"eval_goal_fraction": 0.9}
+    )
+    _, networks, hook = curriculum_run(restart_schedules=restart)
+    config = TrainConfig(num_envs=4, steps_per_iteration=2, minibatches=1)
+    trainer = make_trainer(hook.env, networks, config, scene_state=hook)
+    trainer.iteration = 3
+    hook.after_iteration(trainer)
+    assert trainer.schedule_start == (3 if restart else 0)
+
+
+def curriculum_run(state=None, **settings):
     """A two-stage curriculum (8 x 8, 2 agents, 1 sphere to 12 x 12, 4 agents, 2 spheres, half
-    the environments kept on the first), the small networks and its hook over 4 environments
-    that advances at every evaluation; at ``state``'s stage if given."""
+    the environments kept on the first; other ``settings`` as given), the small networks and
+    its hook over 4 environments that advances at every evaluation; at ``state``'s stage if
+    given."""
     target = tiny(grid_size=12, num_agents=4, num_objects=2, num_goals=2, spawn_margin=1)
     settings = CurriculumSettings(
         stages=2,
@@ -227,6 +241,7 @@ def curriculum_run(state=None):
         start_num_objects=1,
         mix=0.5,
         eval_every=1,
+        **settings,
     )
     curriculum = Curriculum(target, settings)
     if state is not None:

@@ -223,6 +223,21 @@ def test_a_checkpoint_with_capturable_adamw_resumes_without_cuda_graphs():
     assert resumed.iteration == 2
 
 
+def test_restarted_schedules_begin_again_from_their_starts_and_survive_a_resume():
+    settings = {"schedule_iterations": 2, "clip_epsilon_start": 0.3, "clip_epsilon_end": 0.1}
+    trainer = make_trainer(**settings)
+    ran = [trainer.train_iteration() for _ in range(3)]
+    assert [m["clip_epsilon"] for m in ran] == pytest.approx([0.3, 0.2, 0.1])
+    trainer.restart_schedules()
+    restarted = trainer.train_iteration()
+    assert restarted["clip_epsilon"] == pytest.approx(0.3)
+    assert restarted["lr_trunk_policy"] == pytest.approx(trainer.config.lr_trunk_policy)
+    resumed = make_trainer(**settings)
+    resumed.load_state_dict(trainer.state_dict())
+    assert resumed.schedule_start == 3
+    assert resumed.train_iteration()["clip_epsilon"] == pytest.approx(0.2)  # 1 past the start
+
+
 def test_a_new_env_on_another_device_is_refused_naming_both():
     trainer = make_trainer()
     env = trainer.env
