@@ -23,7 +23,6 @@ from terrashift_rl.training.terrashift import (
     make_training_env,
 )
 from terrashift_rl.training.trainer import (
-    MAPOCATrainer,
     OnPolicyTrainer,
     TrainerHook,
 )
@@ -35,7 +34,6 @@ __all__ = [
     "LinearSchedule",
     "LossConfig",
     "MAPOCAConfig",
-    "MAPOCATrainer",
     "MAPPOConfig",
     "OnPolicyTrainer",
     "RecipeConfig",

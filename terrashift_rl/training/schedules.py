@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from terrashift_rl.training.settings import TrainConfig
 
 
 @dataclass(frozen=True)
@@ -24,3 +28,17 @@ class LinearSchedule:
             return self.end
         fraction = min(max(iteration / self.iterations, 0.0), 1.0)
         return self.start + fraction * (self.end - self.start)
+
+
+def training_schedules(config: TrainConfig) -> dict[str, LinearSchedule]:
+    """The schedules of ``config`` over its ``schedule_iterations``: ``lr_factor`` (on both
+    learning rates), the loss's ``clip_epsilon``, ``entropy_coeff`` and ``clip_value``, and
+    ``max_grad_norm``."""
+    n, loss = config.schedule_iterations, config.loss
+    return {
+        "lr_factor": LinearSchedule(1.0, config.lr_end_factor, n),
+        "clip_epsilon": LinearSchedule(loss.clip_epsilon_start, loss.clip_epsilon_end, n),
+        "entropy_coeff": LinearSchedule(loss.entropy_coeff_start, loss.entropy_coeff_end, n),
+        "clip_value": LinearSchedule(loss.clip_value_start, loss.clip_value_end, n),
+        "max_grad_norm": LinearSchedule(config.max_grad_norm_start, config.max_grad_norm_end, n),
+    }

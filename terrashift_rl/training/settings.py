@@ -329,11 +329,9 @@ class CurriculumSettings:
     """
 
     kind: str = setting("none", one_of("none", "auto"))
-    """``none``: train on the ``env`` group's scene from the start; ``auto``: stages from the
-    start scene below to the ``env`` group's scene."""
+    """``none``: the ``env`` group's scene from the start; ``auto``: stages up to it."""
     stages: int = setting(3, at_least(2))
-    """Scenes from the start to the target, both included (3 from the pretraining scene to
-    ``env=large``: 15 x 15 / 8 agents / 4 spheres, 30 x 30 / 16 / 6, 45 x 45 / 24 / 8)."""
+    """Scenes from the start to the target, both included (``env=large``: 15/30/45 columns)."""
     start_grid_size: int = setting(15, at_least(2))
     """Columns per side of the first stage's grid."""
     start_num_agents: int = setting(8, at_least(1))
@@ -354,10 +352,7 @@ class CurriculumSettings:
     """Fraction of the training environments kept on earlier stages once there are any,
     spread evenly over them."""
     restart_schedules: bool = setting(False)
-    """Whether each advance starts the training schedules (the learning rates' factor, the
-    clip ranges, the entropy weight and the gradient-norm limit, over
-    ``train.schedule_iterations``) again from their starts, so that every stage anneals as the
-    first does; if false they run once, from the run's first iteration, whatever the stage."""
+    """Whether each advance starts the training schedules again (else they run once)."""
 
     def __post_init__(self) -> None:
         check_fields(self, "curriculum")

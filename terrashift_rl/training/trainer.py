@@ -45,7 +45,7 @@ from torchrl.modules import set_recurrent_mode
 from terrashift_rl.training import distributed
 from terrashift_rl.training.algorithms import Algorithm
 from terrashift_rl.training.graphs import CudaGraphed
-from terrashift_rl.training.schedules import LinearSchedule
+from terrashift_rl.training.schedules import training_schedules
 from terrashift_rl.training.settings import TrainConfig
 
 _KL_STEP = 1.5
@@ -184,20 +184,10 @@ class OnPolicyTrainer:
             *(name for hook in self.hooks for name in hook.summed_metrics),
         )
         self._reset_graphs()
-        n, loss = config.schedule_iterations, config.loss
-        self.schedules = {
-            "lr_factor": LinearSchedule(1.0, config.lr_end_factor, n),
-            "clip_epsilon": LinearSchedule(loss.clip_epsilon_start, loss.clip_epsilon_end, n),
-            "entropy_coeff": LinearSchedule(loss.entropy_coeff_start, loss.entropy_coeff_end, n),
-            "clip_value": LinearSchedule(loss.clip_value_start, loss.clip_value_end, n),
-            "max_grad_norm": LinearSchedule(
-                config.max_grad_norm_start, config.max_grad_norm_end, n
-            ),
-        }
+        self.schedules = training_schedules(config)
         self.iteration = 0
         self.env_steps = 0
-        self.schedule_start = 0
-        """The iteration the schedules count from (:meth:`restart_schedules`)."""
+        self.schedule_start = 0  # the iteration the schedules count from
         self._carry: TensorDictBase | None = None
 
     # --- one iteration ---------------------------------------------------------------------
@@ -243,10 +233,8 @@ class OnPolicyTrainer:
         return data
 
     def set_env(self, env: EnvBase) -> None:
-        """Collects from ``env`` from the next iteration on (a curriculum's next stage, whose
-        batch may have other shapes), starting from a reset of every environment as the run's
-        first collection does; the graphs captured on the former environment's shapes are
-        dropped."""
+        """Collects from ``env`` (a curriculum's next stage, maybe of other shapes) from the
+        next iteration on, from a reset; drops the graphs captured on the former's shapes."""
         if env.device != self.device:
             raise ValueError(f"the new env is on {env.device}, the trainer on {self.device}")
         self.env = env
@@ -254,9 +242,7 @@ class OnPolicyTrainer:
         self._reset_graphs()
 
     def restart_schedules(self) -> None:
-        """Starts every schedule (``schedules``: the learning rates' factor, the clip ranges,
-        the entropy weight, the gradient-norm limit) again from its start at the next
-        iteration, as at the run's first (a curriculum's next stage)."""
+        """Starts ``schedules`` again at the next iteration (a curriculum's next stage)."""
         self.schedule_start = self.iteration
 
     def evaluation_policy(
@@ -611,7 +597,3 @@ class OnPolicyTrainer:
     def _synchronize(self) -> None:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
-
-
-MAPOCATrainer = OnPolicyTrainer
-"""The trainer's name from when MA-POCA was its only algorithm."""
