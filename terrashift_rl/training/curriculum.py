@@ -322,7 +322,6 @@ class CurriculumHook(TrainerHook):
         self.seed = seed
         self.eval_seed = eval_seed
         self._evaluation: tuple[int, EnvBase] | None = None  # (stage, its environments)
-        self._env_stage = curriculum.stage
         self.env = self._make_env()
 
     def after_iteration(self, trainer: OnPolicyTrainer) -> dict[str, float]:
@@ -348,7 +347,6 @@ class CurriculumHook(TrainerHook):
             passed = curriculum.passes(scores["eval_goal_fraction"])
         if distributed.any_process(passed, "the next curriculum stage"):
             curriculum.advance(env_steps=trainer.env_steps)
-            self._env_stage = curriculum.stage
             self.env = self._make_env()
             trainer.set_env(self.env)
             if curriculum.settings.restart_schedules:
@@ -386,11 +384,11 @@ class CurriculumHook(TrainerHook):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restores the stage and the simulators; raises ``ValueError`` if the state's stage
         is not the one this hook's environments were built for."""
-        saved = state["curriculum"]["stage"]
-        if saved != self._env_stage:
+        saved, built = state["curriculum"]["stage"], self.curriculum.stage
+        if saved != built:
             raise ValueError(
                 f"the checkpoint's curriculum is at stage {saved + 1}, these environments were "
-                f"built at stage {self._env_stage + 1}: load its curriculum entry into the "
+                f"built at stage {built + 1}: load its curriculum entry into the "
                 "Curriculum (Curriculum.load_state_dict) before building the CurriculumHook"
             )
         self.curriculum.load_state_dict(state["curriculum"])
