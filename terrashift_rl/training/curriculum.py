@@ -25,7 +25,7 @@ paper, Section 5.2.2), while a policy that learnt a small scene transfers to a l
   which the trainer collects from in new episodes
   (:meth:`~terrashift_rl.training.trainer.OnPolicyTrainer.set_env`), capturing its graphs and,
   under ``train.compile``, compiling its update again for their shapes. With
-  ``restart_schedules`` the training schedules start again at each advance
+  ``restart_schedules`` (the default) the training schedules start again at each advance
   (:meth:`~terrashift_rl.training.trainer.OnPolicyTrainer.restart_schedules`).
 
 :meth:`Curriculum.state_dict` holds the stage and the env-steps of each advance, so a resumed

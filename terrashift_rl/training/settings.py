@@ -351,7 +351,7 @@ class CurriculumSettings:
     mix: float = setting(0.25, interval(0, 1, high_open=True))
     """Fraction of the training environments kept on earlier stages once there are any,
     spread evenly over them."""
-    restart_schedules: bool = setting(False)
+    restart_schedules: bool = setting(True)
     """Whether each advance starts the training schedules again (else they run once)."""
 
     def __post_init__(self) -> None:
