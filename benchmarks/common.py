@@ -141,8 +141,9 @@ def save_palette_png(figure, out: Path, colors: int = 256) -> None:
 
 def read_series(run: Path, metric: str) -> tuple[list[float], list[float]]:
     """Steps and values of one metric of a run: a torchrl CSVLogger ``scalars`` folder
-    (``<metric>.csv`` of ``step,value`` rows) or a run summary written by
-    ``compact_logs.py``; empty lists if the run did not log it."""
+    (``<metric>.csv`` of ``step,value`` rows), a run summary written by ``compact_logs.py``
+    or a ``time_to_goal.py`` result of one seed (:func:`read_summary`); empty lists if the run
+    did not log it."""
     if run.suffix == ".json":
         summary = read_summary(run)
         if metric in summary["series"]:
@@ -175,10 +176,38 @@ def run_parts(run: str | Path) -> list[Path]:
 
 
 def read_summary(path: Path) -> dict:
-    """A run summary written by ``compact_logs.py``."""
+    """A run summary written by ``compact_logs.py``, or one drawn from a ``time_to_goal.py``
+    result of one seed: its evaluations' goal fractions as ``eval_goal_fraction`` and their
+    training seconds (evaluations not counted) as ``run_seconds``, named by the file.
+
+    Raises:
+        ValueError: for a ``time_to_goal.py`` result of several seeds, naming the file.
+    """
     if path not in _SUMMARIES:
-        _SUMMARIES[path] = json.loads(path.read_text())
+        summary = json.loads(path.read_text())
+        if "seeds" in summary:
+            summary = _time_to_goal_summary(path, summary)
+        _SUMMARIES[path] = summary
     return _SUMMARIES[path]
+
+
+def _time_to_goal_summary(path: Path, result: dict) -> dict:
+    if len(result["seeds"]) != 1:
+        raise ValueError(
+            f"{path}: a time_to_goal result of {len(result['seeds'])} seeds; a run to draw is "
+            "one seed's"
+        )
+    curve = result["seeds"][0]["curve"]
+    return {
+        "run": path.stem,
+        "steps": [],
+        "series": {},
+        "sparse": {
+            "eval_goal_fraction": [[steps, goal] for steps, _, goal in curve],
+            "run_seconds": [[steps, seconds] for steps, seconds, _ in curve],
+        },
+        "evaluations": {},
+    }
 
 
 _SUMMARIES: dict[Path, dict] = {}

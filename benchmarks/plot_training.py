@@ -3,8 +3,10 @@
     python benchmarks/plot_training.py benchmarks/results/training/h100_run46_10min.json \
         benchmarks/results/training/h100_run47_10min.json --out docs/figures/teacher.png
 
-Each argument is a run summary (``compact_logs.py``'s JSON) or a ``scalars`` folder written by
-torchrl's CSVLogger (one ``<metric>.csv`` of ``step,value`` rows per metric). Draws one panel
+Each argument is a run summary (``compact_logs.py``'s JSON), a ``scalars`` folder written by
+torchrl's CSVLogger (one ``<metric>.csv`` of ``step,value`` rows per metric) or a
+``time_to_goal.py`` result of one seed (its evaluations' goal fractions, against training
+seconds that leave the evaluations out). Draws one panel
 per metric against env-steps (by default reward per decision, success rate and throughput),
 with an optional reference line in one panel (``--reference-metric``, the reward by default);
 ``<metric>@minutes`` draws a metric against the run's minutes instead (its ``run_seconds``,

@@ -16,6 +16,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
 
+from common import read_evaluations, read_series, run_label  # noqa: E402
 from time_to_goal import FINAL, logged_last_line, recipe_command, summarize  # noqa: E402
 
 SCRIPT = Path(__file__).parents[2] / "benchmarks" / "time_to_goal.py"
@@ -60,6 +61,22 @@ def test_seconds_to_goal_leave_out_the_evaluations_before(tmp_path):
     assert (entry["iteration_seconds"], entry["collection_seconds"]) == (10.0, 2.0)
     assert (entry["estimation_seconds"], entry["epochs_seconds"]) == (1.0, 7.0)
     assert "start_scene_goal_fraction" not in entry  # no curriculum
+
+
+def test_a_result_of_one_seed_is_drawn_as_a_run_of_its_curve(tmp_path):
+    write_run(tmp_path)
+    entry = summarize(3, tmp_path, [0.9], launch_seconds=70.0, eval_every=2)
+    result = tmp_path / "time_to_goal_large_s3.json"
+    result.write_text(json.dumps({"device": "cpu", "seeds": [entry]}))
+    assert read_series(result, "eval_goal_fraction") == ([200, 400], [0.92, 0.96])
+    # the clock of a drawn run's minutes: training seconds, the evaluations not counted
+    assert read_series(result, "run_seconds") == ([200, 400], [20.0, 40.0])
+    assert read_series(result, "curriculum_stage") == ([], [])
+    assert run_label(result) == "time_to_goal_large_s3" and read_evaluations(result) == {}
+    several = tmp_path / "time_to_goal_two_seeds.json"
+    several.write_text(json.dumps({"seeds": [entry, {**entry, "seed": 4}]}))
+    with pytest.raises(ValueError, match="time_to_goal_two_seeds.json: a time_to_goal result of 2"):
+        read_series(several, "eval_goal_fraction")
 
 
 def test_a_resumed_runs_seconds_leave_out_its_first_parts_final_evaluation(tmp_path):
