@@ -177,8 +177,9 @@ def run_parts(run: str | Path) -> list[Path]:
 
 def read_summary(path: Path) -> dict:
     """A run summary written by ``compact_logs.py``, or one drawn from a ``time_to_goal.py``
-    result of one seed: its evaluations' goal fractions as ``eval_goal_fraction`` and their
-    training seconds (evaluations not counted) as ``run_seconds``, named by the file.
+    result of one seed: its evaluations' goal fractions as ``eval_goal_fraction``, their
+    training seconds (evaluations not counted) as ``run_seconds`` and, for a curriculum run,
+    its stages as ``curriculum_stage`` (steps at its ``stage_starts``), named by the file.
 
     Raises:
         ValueError: for a ``time_to_goal.py`` result of several seeds, naming the file.
@@ -197,17 +198,18 @@ def _time_to_goal_summary(path: Path, result: dict) -> dict:
             f"{path}: a time_to_goal result of {len(result['seeds'])} seeds; a run to draw is "
             "one seed's"
         )
-    curve = result["seeds"][0]["curve"]
-    return {
-        "run": path.stem,
-        "steps": [],
-        "series": {},
-        "sparse": {
-            "eval_goal_fraction": [[steps, goal] for steps, _, goal in curve],
-            "run_seconds": [[steps, seconds] for steps, seconds, _ in curve],
-        },
-        "evaluations": {},
+    seed = result["seeds"][0]
+    curve = seed["curve"]
+    sparse = {
+        "eval_goal_fraction": [[steps, goal] for steps, _, goal in curve],
+        "run_seconds": [[steps, seconds] for steps, seconds, _ in curve],
     }
+    if "stage_starts" in seed:
+        stages = [[curve[0][0], 1]]
+        for stage, start in enumerate(seed["stage_starts"], start=2):
+            stages += [[start, stage - 1], [start, stage]]
+        sparse["curriculum_stage"] = [*stages, [curve[-1][0], stages[-1][1]]]
+    return {"run": path.stem, "steps": [], "series": {}, "sparse": sparse, "evaluations": {}}
 
 
 _SUMMARIES: dict[Path, dict] = {}

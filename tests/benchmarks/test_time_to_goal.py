@@ -60,7 +60,7 @@ def test_seconds_to_goal_leave_out_the_evaluations_before(tmp_path):
     assert entry["curve"] == [[200, 20.0, 0.92], [400, 40.0, 0.96]]
     assert (entry["iteration_seconds"], entry["collection_seconds"]) == (10.0, 2.0)
     assert (entry["estimation_seconds"], entry["epochs_seconds"]) == (1.0, 7.0)
-    assert "start_scene_goal_fraction" not in entry  # no curriculum
+    assert "start_scene_goal_fraction" not in entry and "stage_starts" not in entry  # no curriculum
 
 
 def test_a_result_of_one_seed_is_drawn_as_a_run_of_its_curve(tmp_path):
@@ -71,8 +71,11 @@ def test_a_result_of_one_seed_is_drawn_as_a_run_of_its_curve(tmp_path):
     assert read_series(result, "eval_goal_fraction") == ([200, 400], [0.92, 0.96])
     # the clock of a drawn run's minutes: training seconds, the evaluations not counted
     assert read_series(result, "run_seconds") == ([200, 400], [20.0, 40.0])
-    assert read_series(result, "curriculum_stage") == ([], [])
+    assert read_series(result, "curriculum_stage") == ([], [])  # no curriculum
     assert run_label(result) == "time_to_goal_large_s3" and read_evaluations(result) == {}
+    staged = tmp_path / "time_to_goal_staged.json"
+    staged.write_text(json.dumps({"seeds": [{**entry, "stage_starts": [300]}]}))
+    assert read_series(staged, "curriculum_stage") == ([200, 300, 300, 400], [1, 1, 2, 2])
     several = tmp_path / "time_to_goal_two_seeds.json"
     several.write_text(json.dumps({"seeds": [entry, {**entry, "seed": 4}]}))
     with pytest.raises(ValueError, match="time_to_goal_two_seeds.json: a time_to_goal result of 2"):
@@ -117,6 +120,13 @@ def test_a_curriculum_runs_entry_keeps_the_last_score_of_its_first_stage(tmp_pat
     assert kept() is None
     write_series(tmp_path, "curriculum_start_eval_goal_fraction", [(300, 0.97), (400, 0.95)])
     assert kept() == 0.95
+
+
+def test_a_curriculum_runs_entry_keeps_where_each_stage_began(tmp_path):
+    write_run(tmp_path)
+    write_series(tmp_path, "curriculum_stage", [(100, 1.0), (200, 2.0), (300, 2.0), (400, 3.0)])
+    entry = summarize(3, tmp_path, [0.9], launch_seconds=70.0, eval_every=2)
+    assert entry["stage_starts"] == [200, 400]
 
 
 @pytest.mark.slow
