@@ -234,12 +234,16 @@ class OnPolicyTrainer:
 
     def set_env(self, env: EnvBase) -> None:
         """Collects from ``env`` (a curriculum's next stage, maybe of other shapes) from the
-        next iteration on, from a reset; drops the graphs captured on the former's shapes."""
+        next iteration on, from a reset; drops the graphs captured on the former's shapes. Under
+        ``config.compile``, Dynamo's limit of compilations per network grows by one for the new
+        shapes, lest a curriculum's ninth stage run its update eagerly."""
         if env.device != self.device:
             raise ValueError(f"the new env is on {env.device}, the trainer on {self.device}")
         self.env = env
         self._carry = None
         self._reset_graphs()
+        if self.config.compile:
+            torch._dynamo.config.recompile_limit += 1
 
     def restart_schedules(self) -> None:
         """Starts ``schedules`` again at the next iteration (a curriculum's next stage)."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from types import SimpleNamespace
 
 import pytest
@@ -226,6 +227,46 @@ def test_an_advance_restarts_the_schedules_only_if_asked(monkeypatch, restart):
     trainer.iteration = 3
     hook.after_iteration(trainer)
     assert trainer.schedule_start == (3 if restart else 0)
+
+
+def test_a_compiled_update_compiles_for_every_stage_past_dynamos_limit(monkeypatch):
+    # ten stages of 2 to 11 agents: ten shapes for each compiled network, past Dynamo's default
+    # of 8 compilations per function, after which it would run that function eagerly
+    monkeypatch.setattr(
+        curriculum_module, "evaluate_periodically", lambda *a, **k: {"eval_goal_fraction": 0.9}
+    )
+    compile_module = torch.nn.Module.compile
+
+    def compile_eagerly(module, **options):  # Dynamo's graphs without Inductor's code
+        compile_module(module, dynamic=False, backend="eager")
+
+    monkeypatch.setattr(torch.nn.Module, "compile", compile_eagerly)
+    target = tiny(grid_size=12, num_agents=11, num_objects=1, num_goals=1, spawn_margin=1)
+    settings = CurriculumSettings(
+        stages=10, start_grid_size=8, start_num_agents=2, start_num_objects=1, eval_every=1
+    )
+    curriculum = Curriculum(target, settings)
+    torch.manual_seed(0)
+    networks = make_terrashift_networks(TerraShiftModelConfig.small())
+    hook = CurriculumHook(
+        curriculum, networks, lambda scene: scene, num_envs=4, device="cpu", seed=0, eval_seed=1
+    )
+    config = TrainConfig(num_envs=4, steps_per_iteration=2, minibatches=1, compile=True)
+    graphs = []
+    torch._dynamo.reset()  # no entries from other tests' compilations of the same functions
+    try:
+        with torch._dynamo.config.patch(recompile_limit=8):
+            trainer = make_trainer(hook.env, networks, config, scene_state=hook)
+            for iteration in range(1, 11):
+                trainer.train_iteration()
+                graphs.append(torch._dynamo.utils.counters["stats"]["unique_graphs"])
+                trainer.iteration = iteration
+                hook.after_iteration(trainer)
+    finally:
+        torch._dynamo.reset()
+    assert curriculum.stage == 9
+    added = [after - before for before, after in itertools.pairwise(graphs)]
+    assert added == [added[0]] * 9 and added[0] > 0  # as many new graphs at the tenth stage
 
 
 def curriculum_run(state=None, **settings):
