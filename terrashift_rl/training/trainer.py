@@ -104,11 +104,8 @@ class TrainerHook:
 
 class OnPolicyTrainer:
     """Collects with a policy and learns with an algorithm; holds everything a checkpoint needs.
-
-    The trainer is handed its parts: the environment and the policy that collect, the algorithm
-    (loss and value-estimation pass), the optimiser and the networks they train, and hooks for
-    what belongs to the scene (:class:`TrainerHook`). It knows nothing of the scene itself:
-    :func:`terrashift_rl.training.terrashift.make_trainer` builds TerraShift's.
+    It knows nothing of the scene: :func:`terrashift_rl.training.terrashift.make_trainer`
+    builds TerraShift's, its scene's pieces as hooks (:class:`TrainerHook`).
 
     Attributes:
         algorithm: the loss and what the loop needs of it
