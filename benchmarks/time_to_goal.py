@@ -36,7 +36,8 @@ first evaluation that reaches every threshold: the times to goal are the same, t
 sooner, and ``final_goal_fraction`` is that evaluation's. Ctrl-C (or SIGTERM) stops the running
 seeds the same way and writes what every seed has logged so far (``interrupted`` in the JSON and
 in the entries of the seeds it cut short; seeds not started are left out), then exits with
-status 130. A seed still running ``--grace`` seconds after its ``--minutes`` is stopped so too
+status 130. A seed still running ``--grace`` seconds after its ``--minutes`` (both counted from
+its launch, so its start-up, imports and Warp kernels, comes out of the grace) is stopped so too
 and kept, marked ``interrupted`` unless its run had logged its last line already (its loop
 over, only its exit left).
 
@@ -378,7 +379,11 @@ def main() -> None:
         help="the recipe's config, e.g. mapoca_pixels (default: its own)",
     )
     parser.add_argument(
-        "--grace", type=float, default=300.0, help="seconds past --minutes before a run is stopped"
+        "--grace",
+        type=float,
+        default=300.0,
+        help="seconds past --minutes, counted from the seed's launch (its start-up included), "
+        "before a run is stopped",
     )
     parser.add_argument(
         "--overrides", nargs="+", default=[], metavar="KEY=VALUE", help="more recipe overrides"
