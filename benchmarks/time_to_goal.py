@@ -22,8 +22,10 @@ Per seed, from the run's logs:
   ``curve``: every evaluation's env-steps, training seconds and goal fraction;
   ``launch_seconds``: the process's wall clock (the last part's);
 - with a curriculum, ``start_scene_goal_fraction``: the last score of its first stage's scene
-  at the target (``curriculum.retention_every``), null if none came; ``stage_starts``: the
-  env-steps at which each stage after the first began.
+  at the target (``curriculum.retention_every``), null if none came; ``stage_goal_fraction``:
+  the last score of a stage's scene before the target (``curriculum.eval_every``; for a run
+  that never reached the target, of the stage it stopped in), null if none came;
+  ``stage_starts``: the env-steps at which each stage after the first began.
 
 With ``--resume`` every seed's run kept in ``--keep`` by an earlier call goes on from its last
 checkpoint (``run.resume``, the same command otherwise) for ``--minutes`` more, in the same
@@ -187,6 +189,8 @@ def summarize(
     if stages:  # a curriculum run
         _, kept = read_series(scalars, "curriculum_start_eval_goal_fraction")
         entry["start_scene_goal_fraction"] = kept[-1] if kept else None
+        _, staged = read_series(scalars, "curriculum_eval_goal_fraction")
+        entry["stage_goal_fraction"] = staged[-1] if staged else None
         entry["stage_starts"] = [
             int(at)
             for at, stage, before in zip(stage_steps[1:], stages[1:], stages, strict=False)

@@ -109,17 +109,18 @@ def test_a_run_that_logged_past_the_checkpoint_it_resumed_from_is_refused(tmp_pa
         summarize(3, tmp_path, [0.95], launch_seconds=30.0, eval_every=2)
 
 
-def test_a_curriculum_runs_entry_keeps_the_last_score_of_its_first_stage(tmp_path):
+def test_a_curriculum_runs_entry_keeps_the_last_scores_of_its_stages(tmp_path):
     steps = write_run(tmp_path)
     write_series(tmp_path, "curriculum_stage", [(step, 1.0 + (step > 200)) for step in steps])
 
-    def kept() -> float | None:
+    def kept() -> tuple[float | None, float | None]:
         entry = summarize(3, tmp_path, [0.9], launch_seconds=70.0, eval_every=2)
-        return entry["start_scene_goal_fraction"]
+        return entry["start_scene_goal_fraction"], entry["stage_goal_fraction"]
 
-    assert kept() is None
+    assert kept() == (None, None)
+    write_series(tmp_path, "curriculum_eval_goal_fraction", [(100, 0.4), (200, 0.82)])
     write_series(tmp_path, "curriculum_start_eval_goal_fraction", [(300, 0.97), (400, 0.95)])
-    assert kept() == 0.95
+    assert kept() == (0.95, 0.82)
 
 
 def test_a_curriculum_runs_entry_keeps_where_each_stage_began(tmp_path):
