@@ -142,9 +142,9 @@ def save_palette_png(figure, out: Path, colors: int = 256) -> None:
 def read_series(run: Path, metric: str) -> tuple[list[float], list[float]]:
     """Steps and values of one metric of a run: a torchrl CSVLogger ``scalars`` folder
     (``<metric>.csv`` of ``step,value`` rows), a run summary written by ``compact_logs.py``
-    or a ``time_to_goal.py`` result of one seed (:func:`read_summary`); empty lists if the run
+    or one seed of a ``time_to_goal.py`` result (:func:`read_summary`); empty lists if the run
     did not log it."""
-    if run.suffix == ".json":
+    if is_summary(run):
         summary = read_summary(run)
         if metric in summary["series"]:
             return list(summary["steps"]), list(summary["series"][metric])
@@ -170,46 +170,66 @@ def run_parts(run: str | Path) -> list[Path]:
     summary or scalars folder: a mistyped name is refused, not drawn as a run without data."""
     parts = [Path(part) for part in str(run).split("+")]
     for part in parts:
-        if not part.exists():
+        if not _seed_of(part)[0].exists():
             raise FileNotFoundError(f"run {run}: {part} is neither a summary nor a scalars folder")
     return parts
 
 
+def is_summary(run: Path) -> bool:
+    """Whether a run is a JSON summary (:func:`read_summary`) rather than a ``scalars`` folder."""
+    return _seed_of(run)[0].suffix == ".json"
+
+
+def _seed_of(run: Path) -> tuple[Path, str]:
+    """A run's file and the seed that ``<result>.json#<seed>`` names ("" if none)."""
+    name, _, seed = run.name.partition("#")
+    return run.with_name(name), seed
+
+
 def read_summary(path: Path) -> dict:
-    """A run summary written by ``compact_logs.py``, or one drawn from a ``time_to_goal.py``
-    result of one seed: its evaluations' goal fractions as ``eval_goal_fraction``, their
-    training seconds (evaluations not counted) as ``run_seconds`` and, for a curriculum run,
-    its stages as ``curriculum_stage`` (steps at its ``stage_starts``), named by the file.
+    """A run summary written by ``compact_logs.py``, or one drawn from one seed of a
+    ``time_to_goal.py`` result (``<result>.json#<seed>``, or the file alone if it holds one
+    seed): its evaluations' goal fractions as ``eval_goal_fraction``, their training seconds
+    (evaluations not counted) as ``run_seconds`` and, for a curriculum run, its stages as
+    ``curriculum_stage`` (steps at its ``stage_starts``), named by the file (and the seed).
 
     Raises:
-        ValueError: for a ``time_to_goal.py`` result of several seeds, naming the file.
+        ValueError: for a ``time_to_goal.py`` result of several seeds without one named, a seed
+            it does not hold, or a seed named after a file that is not such a result.
     """
     if path not in _SUMMARIES:
-        summary = json.loads(path.read_text())
+        file, seed = _seed_of(path)
+        summary = json.loads(file.read_text())
         if "seeds" in summary:
-            summary = _time_to_goal_summary(path, summary)
+            summary = _time_to_goal_summary(file, summary, seed)
+        elif seed:
+            raise ValueError(f"{path}: {file.name} is a run summary, not a time_to_goal result")
         _SUMMARIES[path] = summary
     return _SUMMARIES[path]
 
 
-def _time_to_goal_summary(path: Path, result: dict) -> dict:
-    if len(result["seeds"]) != 1:
+def _time_to_goal_summary(path: Path, result: dict, seed: str) -> dict:
+    entries = {str(entry["seed"]): entry for entry in result["seeds"]}
+    if not seed and len(entries) != 1:
         raise ValueError(
-            f"{path}: a time_to_goal result of {len(result['seeds'])} seeds; a run to draw is "
-            "one seed's"
+            f"{path}: a time_to_goal result of {len(entries)} seeds; a run to draw is one "
+            f"seed's, {path}#<seed> (seeds {', '.join(entries)})"
         )
-    seed = result["seeds"][0]
-    curve = seed["curve"]
+    if seed and seed not in entries:
+        raise ValueError(f"{path}#{seed}: no seed {seed} in it (seeds {', '.join(entries)})")
+    name = f"{path.stem}#{seed}" if seed else path.stem
+    entry = entries[seed] if seed else result["seeds"][0]
+    curve = entry["curve"]
     sparse = {
         "eval_goal_fraction": [[steps, goal] for steps, _, goal in curve],
         "run_seconds": [[steps, seconds] for steps, seconds, _ in curve],
     }
-    if "stage_starts" in seed:
+    if "stage_starts" in entry:
         stages = [[curve[0][0], 1]]
-        for stage, start in enumerate(seed["stage_starts"], start=2):
+        for stage, start in enumerate(entry["stage_starts"], start=2):
             stages += [[start, stage - 1], [start, stage]]
         sparse["curriculum_stage"] = [*stages, [curve[-1][0], stages[-1][1]]]
-    return {"run": path.stem, "steps": [], "series": {}, "sparse": sparse, "evaluations": {}}
+    return {"run": name, "steps": [], "series": {}, "sparse": sparse, "evaluations": {}}
 
 
 _SUMMARIES: dict[Path, dict] = {}
@@ -219,7 +239,7 @@ def read_evaluations(run: Path) -> dict[str, dict]:
     """A run's evaluation files (``recipes/evaluate.py``'s output), keyed by their suffix
     (:data:`EVALUATION_SUFFIXES`): for a ``scalars`` folder the files ``<folder>_<suffix>.json``
     beside it, for a summary the evaluations it holds."""
-    if run.suffix == ".json":
+    if is_summary(run):
         return read_summary(run)["evaluations"]
     files = {suffix: run.with_name(f"{run.name}_{suffix}.json") for suffix in EVALUATION_SUFFIXES}
     return {
@@ -244,7 +264,7 @@ def run_label(run: Path) -> str:
     folder, ``<run dir>/logs/<run name>/scalars``, is named by its run directory and the
     command line's overrides that Hydra recorded there (so the runs of a ``-m`` sweep tell
     apart); another ``scalars`` folder by its parent's name, any other folder by its own."""
-    if run.suffix == ".json":
+    if is_summary(run):
         return read_summary(run)["run"]
     if run.name != "scalars":
         return run.name

@@ -4,14 +4,13 @@
         benchmarks/results/training/h100_run47_10min.json --out docs/figures/teacher.png
 
 Each argument is a run summary (``compact_logs.py``'s JSON), a ``scalars`` folder written by
-torchrl's CSVLogger (one ``<metric>.csv`` of ``step,value`` rows per metric) or a
-``time_to_goal.py`` result of one seed (its evaluations' goal fractions, against training
-seconds that leave the evaluations out). Draws one panel
-per metric against env-steps (by default reward per decision, success rate and throughput),
-with an optional reference line in one panel (``--reference-metric``, the reward by default);
-``<metric>@minutes`` draws a metric against the run's minutes instead (its ``run_seconds``,
-evaluations included).
-A summary is labelled by its name, a recipe's own folder
+torchrl's CSVLogger (one ``<metric>.csv`` of ``step,value`` rows per metric) or one seed of a
+``time_to_goal.py`` result, ``<result>.json#<seed>`` (the file alone if it holds one seed: its
+evaluations' goal fractions, against training seconds that leave the evaluations out). Draws
+one panel per metric against env-steps (by default reward per decision, success rate and
+throughput), with an optional reference line in one panel (``--reference-metric``, the reward
+by default); ``<metric>@minutes`` draws a metric against the run's minutes instead (its
+``run_seconds``, evaluations included). A summary is labelled by its name, a recipe's own folder
 (``<run dir>/logs/<run name>/scalars``) by its run folder and the overrides Hydra recorded
 there, any other folder by its name.
 

@@ -27,6 +27,7 @@ from pathlib import Path
 
 from common import (
     benchmark_parser,
+    is_summary,
     read_evaluations,
     read_series,
     read_summary,
@@ -78,7 +79,7 @@ def row(folder: Path, last: int) -> list[str]:
     cells = [
         run_label(folder),
         f"{steps[-1] / 1e6:.2f} M",
-        f"{read_summary(folder)['iterations'] if folder.suffix == '.json' else len(steps)}",
+        f"{read_summary(folder)['iterations'] if is_summary(folder) else len(steps)}",
         f"{statistics.median(speed[1:]):,.0f}" if speed[1:] else "",
         f"{statistics.mean(reward[-last:]):+.4f}",
         f"{statistics.mean(goals):.2f}, {statistics.mean(lost):.2f}" if goals and lost else "",

@@ -16,7 +16,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
 
-from common import read_evaluations, read_series, run_label  # noqa: E402
+from common import read_evaluations, read_series, run_label, run_parts  # noqa: E402
 from time_to_goal import FINAL, logged_last_line, recipe_command, summarize  # noqa: E402
 
 SCRIPT = Path(__file__).parents[2] / "benchmarks" / "time_to_goal.py"
@@ -77,9 +77,25 @@ def test_a_result_of_one_seed_is_drawn_as_a_run_of_its_curve(tmp_path):
     staged.write_text(json.dumps({"seeds": [{**entry, "stage_starts": [300]}]}))
     assert read_series(staged, "curriculum_stage") == ([200, 300, 300, 400], [1, 1, 2, 2])
     several = tmp_path / "time_to_goal_two_seeds.json"
-    several.write_text(json.dumps({"seeds": [entry, {**entry, "seed": 4}]}))
+    several.write_text(
+        json.dumps({"seeds": [entry, {**entry, "seed": 4, "curve": [[300, 30, 0.5]]}]})
+    )
     with pytest.raises(ValueError, match="time_to_goal_two_seeds.json: a time_to_goal result of 2"):
         read_series(several, "eval_goal_fraction")
+    # one seed of several, named after a #
+    fourth = run_parts(f"{several}#4")[0]
+    assert read_series(fourth, "eval_goal_fraction") == ([300], [0.5])
+    assert run_label(fourth) == "time_to_goal_two_seeds#4"
+    with pytest.raises(
+        ValueError, match=r"time_to_goal_two_seeds.json#5: no seed 5 in it \(seeds 3, 4\)"
+    ):
+        read_series(Path(f"{several}#5"), "eval_goal_fraction")
+    summary = tmp_path / "summary.json"
+    summary.write_text(json.dumps({"run": "a", "steps": [], "series": {}, "sparse": {}}))
+    with pytest.raises(ValueError, match="summary.json is a run summary, not a time_to_goal"):
+        read_series(Path(f"{summary}#3"), "eval_goal_fraction")
+    with pytest.raises(FileNotFoundError, match="missing.json#3 is neither"):
+        run_parts(f"{tmp_path / 'missing.json'}#3")
 
 
 def test_a_resumed_runs_seconds_leave_out_its_first_parts_final_evaluation(tmp_path):
