@@ -630,13 +630,14 @@ def test_ctrl_c_checkpoints_exits_in_seconds_and_prints_the_command_that_resumes
 @pytest.mark.slow
 @pytest.mark.parametrize("checkpointed", [True, False])
 def test_a_second_ctrl_c_quits_at_once_saying_what_it_keeps(tmp_path, checkpointed):
-    # iterations of 1,024 decisions (8,192 for the first, never checkpointed): the second signal
-    # lands in the iteration that the first one lets finish
-    overrides = ["run.total_env_steps=1000000", "train.num_envs=128"]
-    if checkpointed:
-        overrides.append("run.checkpoint_every=1")
-    else:
-        overrides += ["run.checkpoint_every=1000", "train.steps_per_iteration=64"]
+    # iterations of 8,192 decisions, seconds each: the second signal lands in the iteration
+    # that the first one lets finish (in one of 1,024, it could come after the run's end)
+    overrides = [
+        "run.total_env_steps=1000000",
+        "train.num_envs=128",
+        "train.steps_per_iteration=64",
+        f"run.checkpoint_every={1 if checkpointed else 1000}",
+    ]
     interrupted = start_pretraining(tmp_path, overrides)
     last, log = tmp_path / "k/checkpoints/last.pt", tmp_path / "k/mapoca_pretrain.log"
     try:
