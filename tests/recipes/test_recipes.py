@@ -631,7 +631,7 @@ def test_ctrl_c_checkpoints_exits_in_seconds_and_prints_the_command_that_resumes
 @pytest.mark.parametrize("checkpointed", [True, False])
 def test_a_second_ctrl_c_quits_at_once_saying_what_it_keeps(tmp_path, checkpointed):
     # iterations of 8,192 decisions, seconds each: the second signal lands in the iteration
-    # that the first one lets finish (in one of 1,024, it could come after the run's end)
+    # that the first one lets finish
     overrides = [
         "run.total_env_steps=1000000",
         "train.num_envs=128",
@@ -645,7 +645,9 @@ def test_a_second_ctrl_c_quits_at_once_saying_what_it_keeps(tmp_path, checkpoint
             wait_for(last.exists, "first checkpoint")
         else:
             wait_for(lambda: log.exists() and "env-steps" in log.read_text(), "run line")
-            time.sleep(0.5)  # past the start of the run's handler, inside the first iteration
+        # inside the next iteration: past the start of the run's handler, or past the end of
+        # the checkpointed iteration (a signal before its end would stop the run right there)
+        time.sleep(0.5)
         os.killpg(interrupted.pid, signal.SIGINT)
         wait_for(lambda: "SIGINT: stopping" in log.read_text(), "answer to the first Ctrl-C")
         stdout, stderr, exit_s = ctrl_c(interrupted)
